@@ -1,0 +1,46 @@
+"""ament_python package cloe_ros (also pip-installable: `pip install .`)."""
+
+import os
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'cloe_ros'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+        (f'share/{PACKAGE}', ['package.xml']),
+        (f'share/{PACKAGE}/config', glob('config/*.yaml')),
+        *[
+            (f'share/{PACKAGE}/bags/{os.path.basename(os.path.normpath(d))}', glob(f'{d}*'))
+            for d in sorted(glob('bags/*/'))
+        ],
+    ],
+    install_requires=[
+        'setuptools',
+        'numpy>=1.24',
+        'scipy>=1.10',
+        'matplotlib>=3.6',
+        'pyyaml>=6',
+        'rosbags>=0.10',
+    ],
+    extras_require={
+        'test': ['pytest>=7', 'mcap>=1.1', 'mcap-ros2-support>=0.5'],
+    },
+    python_requires='>=3.10',
+    zip_safe=True,
+    maintainer='cloe_ros maintainers',
+    maintainer_email='maintainers@cloe-ros.invalid',
+    description='Online trajectory inference of quadrotors with CLOE / CLOE-SM on ROS 2.',
+    license='BSD-3-Clause',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'cloe = cloe_ros.cli.main:main',
+        ],
+    },
+)

@@ -41,6 +41,10 @@ setup(
     entry_points={
         'console_scripts': [
             'cloe = cloe_ros.cli.main:main',
+            'quadrotor_sim = cloe_ros.ros.sim_node:main',
+            'cloe_inference = cloe_ros.ros.inference_node:main',
+            'bag_recorder = cloe_ros.ros.recorder_node:main',
+            'bag_player = cloe_ros.ros.player_node:main',
         ],
     },
 )

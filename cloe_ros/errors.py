@@ -5,3 +5,7 @@ from __future__ import annotations
 
 class CloeError(Exception):
     """A problem with the user's input, reported with a message that says what to change."""
+
+
+class ConfigError(CloeError, ValueError):
+    """Settings (of an estimator, identifier, engine) that cannot be used."""

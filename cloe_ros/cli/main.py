@@ -12,10 +12,10 @@ import sys
 from collections.abc import Sequence
 
 from cloe_ros import __version__
-from cloe_ros.cli import paper
+from cloe_ros.cli import bag, demo, evaluate, infer, paper, report
 from cloe_ros.errors import CloeError
 
-SUBCOMMANDS = (paper,)
+SUBCOMMANDS = (demo, paper, infer, report, evaluate, bag)
 
 
 def build_parser() -> argparse.ArgumentParser:

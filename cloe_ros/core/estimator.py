@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cloe_ros.core.identifier import IdentifierConfig
 from cloe_ros.core.model import (
     A_KNOWN,
     BLOCK_STARTS,
@@ -34,15 +35,18 @@ from cloe_ros.core.model import (
     N_PARAMS,
     N_REFERENCES,
     N_STATES,
+    PAPER_COUPLING,
     PARAM_ROW,
     REGRESSOR_INDEX,
     UNKNOWN_ROWS,
     check_shape,
 )
-from cloe_ros.errors import CloeError
+from cloe_ros.errors import ConfigError
 
 #: Algorithms implemented exactly as the paper states them.
 PAPER_ALGORITHMS = ('cloe', 'cloe_sm')
+#: Every algorithm: the paper's two, and CLOE-SM with the IV identifier (cloe_ros.core.cloe_iv).
+ALGORITHMS = (*PAPER_ALGORITHMS, 'cloe_iv')
 
 
 def _per_state(four_chain: Sequence[float], two_chain: Sequence[float]) -> tuple[float, ...]:
@@ -60,22 +64,25 @@ SM_GAINS_TABLE1 = _per_state((0.12, 0.18, 0.24, 0.30), (0.24, 0.30))
 SM_EXPONENTS = _per_state((0.75, 0.5, 0.25, 0.0), (0.5, 0.0))
 
 
-class ConfigError(CloeError, ValueError):
-    """An estimator configuration that cannot be used."""
-
-
 @dataclass(frozen=True)
 class EstimatorConfig:
     """Gains and initial values of one vehicle's estimator.
 
     Attributes:
-        algorithm: ``'cloe'`` (no sliding-mode term) or ``'cloe_sm'``.
+        algorithm: ``'cloe'`` (no sliding-mode term), ``'cloe_sm'`` (both exactly as the paper) or
+            ``'cloe_iv'`` (CLOE-SM observer with the IV identifier and a bounded L).
         gamma_theta: Identifier gain Gamma (paper: 400), 1/s per unit regressor.
         gamma_l: Adaptive-gain rate gamma_i of ``l_i' = gamma_i e_i^2`` (paper: 400).
         l_initial: Initial observer gain L(0), 1/s, the same on every state.
         theta_initial: Initial parameters (16,), or ``None`` for zeros (paper).
         sm_gains: Sliding-mode gains alpha per state (12,), used by ``cloe_sm``.
         sm_exponents: Sliding-mode exponents p per state (12,), 0 <= p < 1.
+        l_leak: ``cloe_iv`` only: leakage sigma of ``l' = gamma e^2 - sigma (l - l_min)``, 1/s.
+        l_min: ``cloe_iv`` only: lower bound of L, 1/s.
+        l_max: ``cloe_iv`` only: upper bound of L, 1/s.
+        identifier: ``cloe_iv`` only: settings of the IV identifier.
+        ground_altitude: ``cloe_iv`` only: while the commanded altitude is at or below this (m)
+            the vehicle counts as landed and identification pauses (negative: never).
 
     """
 
@@ -86,12 +93,26 @@ class EstimatorConfig:
     theta_initial: tuple[float, ...] | None = None
     sm_gains: tuple[float, ...] = field(default=SM_GAINS_TABLE1)
     sm_exponents: tuple[float, ...] = field(default=SM_EXPONENTS)
+    l_leak: float = 0.1
+    l_min: float = 5.0
+    l_max: float = 50.0
+    identifier: IdentifierConfig = field(default_factory=IdentifierConfig)
+    ground_altitude: float = 0.05
 
     def __post_init__(self) -> None:
-        if self.algorithm not in PAPER_ALGORITHMS:
-            msg = f'algorithm {self.algorithm!r} is not one of {", ".join(PAPER_ALGORITHMS)}'
+        if self.algorithm not in ALGORITHMS:
+            msg = f'algorithm {self.algorithm!r} is not one of {", ".join(ALGORITHMS)}'
             raise ConfigError(msg)
-        for name in ('gamma_theta', 'gamma_l', 'l_initial'):
+        if not (np.isfinite(self.l_max) and self.l_max > 0):
+            msg = f'l_max must be finite and > 0, got {self.l_max!r}'
+            raise ConfigError(msg)
+        if not (np.isfinite(self.l_min) and 0 <= self.l_min <= self.l_max):
+            msg = f'l_min must be within [0, l_max = {self.l_max:g}], got {self.l_min!r}'
+            raise ConfigError(msg)
+        if not np.isfinite(self.ground_altitude):
+            msg = f'ground_altitude must be finite, got {self.ground_altitude!r}'
+            raise ConfigError(msg)
+        for name in ('gamma_theta', 'gamma_l', 'l_initial', 'l_leak'):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 msg = f'{name} must be finite and >= 0, got {value!r}'
@@ -296,3 +317,13 @@ class CloeEstimator:
     def error(self) -> np.ndarray:
         """``e = zeta - zeta_hat`` (N, 12) as used in the last step (before its update)."""
         return self.buffers.e
+
+    @property
+    def coupling(self) -> np.ndarray:
+        """The paper's model has the tilt couplings fixed at ``+g`` and ``-g`` (N, 2)."""
+        return np.tile(PAPER_COUPLING, (self.n_vehicles, 1))
+
+    @property
+    def model(self) -> tuple[np.ndarray, np.ndarray]:
+        """The model the observer runs on: ``(theta_hat, coupling)``."""
+        return self.theta_hat, self.coupling

@@ -83,7 +83,8 @@ def run_estimators(
         configs: N estimator configurations.
         t: Sample times (T,), uniformly spaced, s.
         measured: Measurements (T, N, 12) or (T, 12) (shared by all estimators).
-        reference: References (T, N, 4) or (T, 4); ``reference[k]`` is held over ``[t_k, t_k+1)``.
+        reference: References (T, N, 4) or (T, 4); the step to ``t_k`` uses ``reference[k]``, the
+            reference at the measurement's time (as the engine does).
         record_every: Keep estimates and parameters every this many steps.
         progress: Called with the fraction done about a hundred times.
 
@@ -110,7 +111,7 @@ def run_estimators(
     every = max(1, len(t) // 100)
     for k in range(len(t)):
         if k:
-            est.step(measured[k], reference[k - 1], h)
+            est.step(measured[k], reference[k], h)
         np.subtract(measured[k], est.zeta_hat, out=run.error[k])
         if k % record_every == 0:
             j = k // record_every

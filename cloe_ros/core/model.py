@@ -91,6 +91,10 @@ BLOCKS: tuple[Block, ...] = (
     Block('z', (10, 11), 3),
 )
 N_PARAMS = sum(b.n_params for b in BLOCKS)
+#: Blocks with a tilt coupling (x-theta, y-phi) and the paper's values of those couplings.
+COUPLED_BLOCKS = tuple(b for b in BLOCKS if b.coupling is not None)
+N_COUPLINGS = len(COUPLED_BLOCKS)
+PAPER_COUPLING = np.array([b.coupling for b in COUPLED_BLOCKS])
 
 #: Slice of ``Theta`` belonging to each block.
 BLOCK_SLICES: tuple[slice, ...] = tuple(
@@ -145,11 +149,15 @@ def check_shape(name: str, array: np.ndarray, shape: tuple[int, ...]) -> None:
         raise ValueError(msg)
 
 
-def system_matrices(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def system_matrices(
+    theta: np.ndarray, coupling: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Return ``A(Theta)`` (..., 12, 12) and ``B(Theta)`` (..., 12, 4).
 
     Args:
         theta: Parameters (..., 16), block by block as in ``PARAMETER_NAMES``.
+        coupling: Tilt couplings (..., 2) replacing the known ``+g`` (x-theta) and ``-g`` (y-phi)
+            of the velocity rows, for models that identify them; None: the paper's ``+-g``.
 
     """
     theta = np.asarray(theta, dtype=float)
@@ -161,7 +169,25 @@ def system_matrices(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         tb = theta[..., sl]
         a[..., block.last, list(block.states)] = tb[..., :-1]
         b[..., block.last, block.reference] = tb[..., -1]
+    if coupling is not None:
+        coupling = np.asarray(coupling, dtype=float)
+        check_shape('coupling', coupling, (N_COUPLINGS,))
+        for k, block in enumerate(COUPLED_BLOCKS):
+            a[..., block.states[1], block.states[2]] = coupling[..., k]
     return a, b
+
+
+def unstable_blocks(
+    theta: np.ndarray, coupling: np.ndarray | None = None, margin: float = 0.0
+) -> list[str]:
+    """Names of the blocks of ``A(Theta, c)`` with a pole at real part >= -margin (one vehicle)."""
+    a, _ = system_matrices(theta, coupling)
+    out = []
+    for block in BLOCKS:
+        idx = np.array(block.states)
+        if np.max(np.linalg.eigvals(a[np.ix_(idx, idx)]).real) >= -margin:
+            out.append(block.name)
+    return out
 
 
 def parameters_from_matrices(a: np.ndarray, b: np.ndarray) -> np.ndarray:

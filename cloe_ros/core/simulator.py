@@ -172,21 +172,23 @@ class ProbingSignal:
     ``tau_c(t) = sum_k A_ck sin(w_ck t + phase_ck)`` for the channels ``[x_d, y_d, psi_d, z_d]``.
     Amplitudes in m (rad for psi_d), frequencies in rad/s. The default uses three frequencies on
     the 4th-order chains (each sinusoid adds two directions of excitation, the 5-parameter rows
-    need at least three) and two on the 2nd-order chains, no two frequencies in a small-integer
-    ratio, a few centimetres and a few hundredths of a radian, so the flight is barely changed.
+    need at least three) and two on the 2nd-order chains; no two frequencies in a small-integer
+    ratio; all but the lowest x/y ones above the §6.1 disturbances (<= 1.2 rad/s), and none within
+    0.5 rad/s of them, so an identifier can tell the reference's effect from the disturbances'.
+    A few centimetres and a few hundredths of a radian: the flight is barely changed.
     """
 
     amplitudes: tuple[tuple[float, ...], ...] = (
-        (0.04, 0.04, 0.03),
-        (0.04, 0.04, 0.03),
+        (0.05, 0.04, 0.03),
+        (0.05, 0.04, 0.03),
         (0.03, 0.02),
-        (0.03, 0.02),
+        (0.05, 0.03),
     )
     frequencies: tuple[tuple[float, ...], ...] = (
-        (0.7, 1.9, 4.3),
-        (0.8, 2.3, 3.7),
-        (1.3, 3.1),
-        (1.1, 2.9),
+        (0.6, 2.3, 5.3),
+        (0.7, 2.9, 5.9),
+        (2.3, 4.7),
+        (2.7, 5.1),
     )
     phases: tuple[tuple[float, ...], ...] = (
         (0.0, 1.0, 2.0),

@@ -93,8 +93,10 @@ def test_true_theta_tracks_the_linear_closed_loop(algorithm):
             err[k] = np.linalg.norm(zeta[k] - est.zeta_hat[0])
         assert err[1] > 0.05
         finals.append(np.max(err[t > 10.0]))
-    assert finals[1] < 1e-3  # tracking, within discretization error
-    assert finals[0] / finals[1] == pytest.approx(2.0, rel=0.25)  # first order in h
+    # tracking, within the O(h) discretization error (probing up to 5.9 rad/s, h = 1 ms) ...
+    assert finals[1] < 3e-3
+    # ... which halves when h halves
+    assert finals[0] / finals[1] == pytest.approx(2.0, rel=0.25)
 
 
 def _paper_run(h, implicit, duration=30.0):

@@ -1,0 +1,319 @@
+"""``cloe evaluate``: how well the identification and the anticipation work, with numbers.
+
+``cloe evaluate sim``: a simulated scenario (truth known): parameter error per block over time,
+prediction RMSE at 0.5 / 1 / 2 / 5 s beside the true-model, constant-velocity and hold-position
+predictors. ``cloe evaluate bag BAG``: the same prediction scores on a recording against what the
+vehicle did next (no parameter truth), optionally with the recorded future references as the plan.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cloe_ros.cli.errors import CliError
+from cloe_ros.cli.progress import ProgressBar
+from cloe_ros.core.engine import NS
+from cloe_ros.core.evaluation import (
+    HORIZONS,
+    PredictionScore,
+    Run,
+    parameter_error_over_time,
+    run_engine,
+    score_predictions,
+)
+from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
+from cloe_ros.core.model import BLOCKS, PAPER_COUPLING, unstable_blocks
+from cloe_ros.core.simulator import (
+    SCENARIOS,
+    TYPICAL_NOISE,
+    MeasurementNoise,
+    NoDisturbance,
+    PaperDisturbance,
+    QuadrotorSimulator,
+    true_parameters,
+)
+from cloe_ros.io.config import ALGORITHMS, build_configs, load_settings
+
+BLOCK_NAMES = [b.name for b in BLOCKS]
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        'evaluate',
+        help='score identification and prediction (simulation or a bag) against baselines',
+        description=__doc__.split('\n\n')[1],
+    )
+    ev = p.add_subparsers(dest='target', metavar='TARGET', required=True)
+    s = ev.add_parser('sim', help='a simulated scenario, truth known')
+    s.add_argument('--scenario', default='position', choices=sorted(SCENARIOS))
+    s.add_argument('--duration', type=float, default=90.0, help='simulated s (default: 90)')
+    s.add_argument('--algorithms', nargs='+', default=['cloe_sm', 'cloe_iv'], choices=ALGORITHMS)
+    s.add_argument('--rate', type=float, default=100.0, help='odometry and estimator rate, Hz')
+    s.add_argument(
+        '--noise', action='store_true', help='measurement noise: 2 mm, 1 cm/s, 2 mrad, 0.01 rad/s'
+    )
+    s.add_argument('--no-disturbance', action='store_true', help='without the §6.1 disturbances')
+    s.add_argument('--seed', type=int, default=0, help='noise seed')
+    s.add_argument(
+        '--score-from',
+        type=float,
+        default=30.0,
+        help='score predictions issued after this time, s (default: 30)',
+    )
+    s.add_argument(
+        '--segments',
+        type=float,
+        default=0.0,
+        help='also score the predictions per segment of this many s (long runs)',
+    )
+    _common(s)
+    b = ev.add_parser('bag', help='a recorded flight: predictions against what happened next')
+    b.add_argument('bag', type=Path)
+    b.add_argument('--vehicle', default=None, help='vehicle namespace (default: the first)')
+    b.add_argument('--algorithms', nargs='+', default=['cloe_iv'], choices=ALGORITHMS)
+    b.add_argument('--rate', type=float, default=100.0, help='estimator rate, Hz')
+    b.add_argument(
+        '--plan-from-reference',
+        action='store_true',
+        help='give the estimator the recorded future references as reference_plan',
+    )
+    b.add_argument(
+        '--score-from',
+        type=float,
+        default=5.0,
+        help='score predictions issued this many s after the start (default: 5)',
+    )
+    _common(b)
+    p.set_defaults(run=run)  # fmt: skip
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument('--config', type=Path, help="YAML with the node's parameters")
+    p.add_argument('--json', type=Path, help='also write the numbers to this JSON file')
+    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
+
+
+def _settings(args, algorithm: str) -> dict:
+    settings = load_settings(args.config) if args.config else {}
+    settings = {k: v for k, v in settings.items() if k != 'vehicles'}
+    settings.update(algorithm=algorithm, rate=args.rate)
+    return settings
+
+
+def format_prediction(score: PredictionScore, label: str) -> str:
+    lines = [
+        f'  prediction RMSE [m], {label} ({int(score.count[0])} predictions issued in '
+        f'[{score.t_from:.0f}, {score.t_to:.0f}] s; {score.withheld} withheld)',
+        f'    {"horizon":>8} {"model":>9}'
+        + (f' {"true model":>11}' if score.true_model is not None else '')
+        + f' {"const. vel.":>11} {"hold pos.":>10} {"vs CV":>7} {"vs hold":>8}',
+    ]
+    for j, h in enumerate(score.horizons):
+        row = f'    {h:>7g}s {score.model[j]:>9.4f}'
+        if score.true_model is not None:
+            row += f' {score.true_model[j]:>11.4f}'
+        row += f' {score.constant_velocity[j]:>11.4f} {score.hold_position[j]:>10.4f}'
+        row += f' {score.constant_velocity[j] / score.model[j]:>6.1f}x'
+        row += f' {score.hold_position[j] / score.model[j]:>7.1f}x'
+        lines.append(row)
+    return '\n'.join(lines)
+
+
+def _score_dict(score: PredictionScore) -> dict:
+    return {
+        'horizons_s': list(score.horizons),
+        'model': score.model.tolist(),
+        'true_model': None if score.true_model is None else score.true_model.tolist(),
+        'constant_velocity': score.constant_velocity.tolist(),
+        'hold_position': score.hold_position.tolist(),
+        'count': score.count.tolist(),
+        'withheld': score.withheld,
+        'window_s': [score.t_from, score.t_to],
+    }
+
+
+def _identification_summary(run: Run) -> list[str]:
+    lines = []
+    if run.status is not None:
+        st, ex = run.status[-1], run.excitation[-1]
+        lines.append(
+            '  identifier status at the end: '
+            + ', '.join(
+                f'{n} {STATUS_NAMES[int(s)]} (exc. {e:.2f})' for n, s, e in zip(ROW_NAMES, st, ex)
+            )
+        )
+    theta, coupling = run.theta_hat[-1], run.coupling[-1]
+    unstable = unstable_blocks(theta, coupling)
+    lines.append(f'  couplings: c_x = {coupling[0]:.3f}, c_y = {coupling[1]:.3f} m/s^2 per rad '
+                 f'(paper: +-{PAPER_COUPLING[0]:.2f}); unstable blocks of the final estimate: '
+                 f'{", ".join(unstable) or "none"}')  # fmt: skip
+    lines.append(f'  L: max {np.max(run.gain_l):.3g} /s over the run, {np.max(run.gain_l[-1]):.3g}'
+                 ' at the end')  # fmt: skip
+    return lines
+
+
+def run_sim(args) -> int:
+    if not 10.0 <= args.duration <= 20000.0:
+        raise CliError(f'--duration must be within [10, 20000] s, got {args.duration:g}')
+    scenario = SCENARIOS[args.scenario]
+    sim_rate = 500.0
+    if (
+        not 10.0 <= args.rate <= sim_rate
+        or abs(sim_rate / args.rate - round(sim_rate / args.rate)) > 1e-9
+    ):
+        raise CliError(f'--rate must divide {sim_rate:g} Hz and be >= 10 Hz, got {args.rate:g}')
+    noise = TYPICAL_NOISE if args.noise else MeasurementNoise()
+    bar = ProgressBar(enabled=not args.quiet)
+    sim = QuadrotorSimulator(
+        scenario, disturbance=NoDisturbance() if args.no_disturbance else PaperDisturbance(),
+        noise=noise, dt=1.0 / sim_rate, rng=np.random.default_rng(args.seed),
+    )  # fmt: skip
+    start = time.monotonic()
+    res = sim.run(args.duration, progress=lambda f: bar('simulate', f))
+    every = round(sim_rate / args.rate)
+    t, measured, ref = res.t[::every], res.measured[::every, 0], res.reference[::every, 0]
+    truth_t, truth = res.t, res.zeta[:, 0]
+    theta_true = true_parameters(sim.quad, sim.gains)
+    print(f'{args.scenario} scenario, {args.duration:g} s, '
+          f'{"no disturbance" if args.no_disturbance else "§6.1 disturbances"}, '
+          f'{"noise 2 mm / 1 cm/s / 2 mrad / 0.01 rad/s" if args.noise else "no noise"}, '
+          f'probing on; odometry and estimator at {args.rate:g} Hz')  # fmt: skip
+    out = {'scenario': args.scenario, 'duration_s': args.duration, 'noise': args.noise,
+           'rate_hz': args.rate, 'algorithms': {}}  # fmt: skip
+    checkpoints = [c for c in (10, 20, 30, 45, 60, 90, 120, 200, 500, 1000) if c <= args.duration]
+    for algorithm in args.algorithms:
+        engine_config, _ = build_configs(_settings(args, algorithm))
+        horizon = engine_config.prediction.horizon
+
+        def known_future(now, horizon=horizon):
+            """The simulator's own future reference (desired + probing), as reference_plan."""
+            times = now + np.arange(0.0, horizon + 0.2 + 1e-9, 0.02)
+            return times, sim.reference(times)[:, 0]
+
+        run = run_engine(engine_config, t, measured, ref,
+                         progress=lambda f, a=algorithm: bar(f'estimate {a}', f))  # fmt: skip
+        run_plan = run_engine(
+            engine_config,
+            t,
+            measured,
+            ref,
+            known_future,
+            progress=lambda f, a=algorithm: bar(f'estimate {a} + plan', f),
+        )
+        bar.close()
+        step = engine_config.prediction.step
+        print(f'\n{algorithm}:')
+        perr = parameter_error_over_time(run, theta_true, [*checkpoints, args.duration])
+        print('  parameter error ||Theta_hat_b - Theta_b|| / ||Theta_b|| [%]')
+        print('    ' + f'{"t [s]":>7}' + ''.join(f'{b:>9}' for b in [*BLOCK_NAMES, 'all']))
+        for tq, errs in perr.items():
+            print('    ' + f'{tq:>7g}' + ''.join(f'{100 * errs[b]:>9.2f}'
+                                               for b in [*BLOCK_NAMES, 'all']))  # fmt: skip
+        for line in _identification_summary(run):
+            print(line)
+        score = score_predictions(run, truth_t, truth, step, HORIZONS, t_from=args.score_from,
+                                  true_model=(theta_true, PAPER_COUPLING))  # fmt: skip
+        print(format_prediction(score, f'reference held, from t >= {args.score_from:g} s'))
+        score_all = score_predictions(run, truth_t, truth, step, HORIZONS, t_from=0.0,
+                                      true_model=(theta_true, PAPER_COUPLING))  # fmt: skip
+        print(format_prediction(score_all, 'reference held, whole run'))
+        score_plan = score_predictions(run_plan, truth_t, truth, step, HORIZONS,
+                                       t_from=args.score_from,
+                                       true_model=(theta_true, PAPER_COUPLING),
+                                       plans=known_future)  # fmt: skip
+        print(format_prediction(score_plan, 'known future reference as reference_plan, '
+                                            f'from t >= {args.score_from:g} s'))  # fmt: skip
+        entry = {
+            'parameter_error': {str(k): v for k, v in perr.items()},
+            'prediction': _score_dict(score),
+            'prediction_whole_run': _score_dict(score_all),
+            'prediction_with_plan': _score_dict(score_plan),
+            'coupling_final': run.coupling[-1].tolist(),
+            'L_max': float(np.max(run.gain_l)),
+            'theta_hat_abs_max': float(np.max(np.abs(run.theta_hat))),
+        }
+        if args.segments > 0:
+            print(f'  per {args.segments:g} s segment (RMSE model / const. vel. / hold at 2 s and '
+                  '5 s; L max; |Theta_hat| max):')  # fmt: skip
+            segs = []
+            for s0 in np.arange(0.0, args.duration, args.segments):
+                sc = score_predictions(run, truth_t, truth, step, (2.0, 5.0), t_from=s0,
+                                       t_to=s0 + args.segments)  # fmt: skip
+                m = (run.t >= s0) & (run.t < s0 + args.segments)
+                lmax = float(np.max(run.gain_l[m])) if np.any(m) else float('nan')
+                tmax = float(np.max(np.abs(run.theta_hat[m]))) if np.any(m) else float('nan')
+                print(f'    [{s0:6.0f}, {s0 + args.segments:6.0f}) s: '
+                      f'2 s {sc.model[0]:.4f} / {sc.constant_velocity[0]:.4f} / '
+                      f'{sc.hold_position[0]:.4f}; 5 s {sc.model[1]:.4f} / '
+                      f'{sc.constant_velocity[1]:.4f} / {sc.hold_position[1]:.4f}; '
+                      f'L {lmax:.3g}; |Theta| {tmax:.4g}')  # fmt: skip
+                segs.append({'start_s': float(s0), **_score_dict(sc), 'L_max': lmax,
+                             'theta_abs_max': tmax})  # fmt: skip
+            entry['segments'] = segs
+        out['algorithms'][algorithm] = entry
+    print(f'\n({time.monotonic() - start:.0f} s)')
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2, default=float))
+    return 0
+
+
+def run_bag(args) -> int:
+    from cloe_ros.io.dataset import load_flight
+    from cloe_ros.io.reader import BagError
+
+    try:
+        vehicles = load_flight(args.bag)
+    except BagError as err:
+        raise CliError(str(err)) from err
+    ns = args.vehicle if args.vehicle is not None else sorted(vehicles)[0]
+    if ns not in vehicles:
+        raise CliError(f'no vehicle {ns!r} in {args.bag}; found: ' + ', '.join(vehicles))
+    data = vehicles[ns]
+    t0 = int(min(data.odom.t_ns[0], data.reference.t_ns[0]))
+    t_odom = (data.odom.t_ns - t0) / NS
+    t_ref = (data.reference.t_ns - t0) / NS
+    # one merged stream on the odometry's stamps (the engine holds the latest reference)
+    idx = np.searchsorted(t_ref, t_odom, side='right') - 1
+    keep = idx >= 0
+    t, zeta, ref = t_odom[keep], data.odom.values[keep], data.reference.values[idx[keep]]
+    bar = ProgressBar(enabled=not args.quiet)
+    out = {'bag': str(args.bag), 'vehicle': ns, 'plan_from_reference': args.plan_from_reference,
+           'algorithms': {}}  # fmt: skip
+    print(f'{args.bag} ({ns or "/"}): {t[-1] - t[0]:.1f} s, {len(t)} odometry samples'
+          + (', recorded future references given as the plan' if args.plan_from_reference
+             else ''))  # fmt: skip
+    for algorithm in args.algorithms:
+        engine_config, _ = build_configs(_settings(args, algorithm))
+        horizon = engine_config.prediction.horizon
+        plans = None
+        if args.plan_from_reference:
+            values = data.reference.values
+
+            def plans(now, horizon=horizon, values=values):
+                m = (t_ref > now) & (t_ref <= now + horizon + 0.1)
+                return (t_ref[m], values[m]) if np.any(m) else None
+
+        run = run_engine(engine_config, t, zeta, ref, plans,
+                         progress=lambda f, a=algorithm: bar(f'estimate {a}', f))  # fmt: skip
+        bar.close()
+        score = score_predictions(run, t, zeta, engine_config.prediction.step, HORIZONS,
+                                  t_from=args.score_from)  # fmt: skip
+        print(f'\n{algorithm}:')
+        for line in _identification_summary(run):
+            print(line)
+        print(format_prediction(score, f'against the measured positions, from t >= '
+                                       f'{args.score_from:g} s'))  # fmt: skip
+        out['algorithms'][algorithm] = {'prediction': _score_dict(score),
+                                        'coupling_final': run.coupling[-1].tolist()}  # fmt: skip
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2, default=float))
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    return run_sim(args) if args.target == 'sim' else run_bag(args)

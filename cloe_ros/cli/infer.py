@@ -1,0 +1,245 @@
+"""``cloe infer BAG -o OUT_BAG``: the node's engine over a recorded bag, outputs into a new bag."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cloe_ros.cli.errors import CliError
+from cloe_ros.cli.progress import ProgressBar
+from cloe_ros.core.engine import NS, VehicleEngine
+from cloe_ros.io import messages
+from cloe_ros.io.config import ALGORITHMS, build_configs, load_settings
+from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE
+from cloe_ros.io.outputs import OutputEncoder
+from cloe_ros.io.reader import BagError, BagReader
+from cloe_ros.io.writer import BagWriter
+
+#: Input topics copied into the output bag (under each vehicle namespace) so it stands alone.
+COPIED = (ODOM, REFERENCE, PLAN, 'ground_truth', 'true_parameters')
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        'infer',
+        help='run the inference engine over a recorded bag and write its outputs to a new bag',
+        description=(
+            'Runs the same engine as the cloe_inference node over a rosbag2/MCAP bag: every '
+            'vehicle with <ns>/odom (nav_msgs/Odometry) and <ns>/reference '
+            '(geometry_msgs/PoseStamped) topics is inferred (with <ns>/reference_plan, '
+            'nav_msgs/Path, when present); other topics are ignored. Writes '
+            '<ns>/<output_ns>/state, <ns>/<output_ns>/parameters and <ns>/<output_ns>/prediction '
+            'into OUT_BAG, with copies of the inputs so the output bag is self-contained.'
+        ),
+    )
+    p.add_argument('bag', type=Path, help='input bag directory (rosbag2, MCAP)')
+    p.add_argument('-o', '--output', type=Path, required=True, help='output bag directory (new)')
+    p.add_argument('--algorithm', choices=ALGORITHMS, help='estimator (default: cloe_iv)')
+    p.add_argument('--rate', type=float, help='estimator rate, Hz of message time (default 100)')
+    p.add_argument(
+        '--config',
+        type=Path,
+        help="YAML with the node's parameters (cloe_inference: ros__parameters: ...)",
+    )
+    p.add_argument(
+        '--vehicles',
+        nargs='+',
+        metavar='NS',
+        help='only these vehicle namespaces (default: every one found)',
+    )
+    p.add_argument('--no-inputs', action='store_true', help='do not copy the input topics')
+    p.add_argument(
+        '--compression',
+        choices=('zstd', 'none'),
+        default='zstd',
+        help='chunk compression of the output bag (default: %(default)s)',
+    )
+    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
+    p.set_defaults(run=run)  # fmt: skip
+
+
+@dataclass
+class InferResult:
+    """What a run did, per vehicle."""
+
+    vehicles: list[str]
+    steps: dict[str, int]
+    rejected: dict[str, Counter]
+    malformed: dict[str, int]
+    time_jumps: dict[str, int]
+    duration_s: float
+    wall_s: float
+    written: dict[str, int] = field(default_factory=dict)
+
+
+def check_inputs(topics: dict[str, str], path: Path) -> list[str]:
+    """Vehicle namespaces with usable odom/reference pairs; a clear error otherwise."""
+    odoms = {n[: -len(ODOM) - 1]: t for n, t in topics.items() if n.endswith('/' + ODOM)}
+    refs = {n[: -len(REFERENCE) - 1]: t for n, t in topics.items()
+            if n.endswith('/' + REFERENCE)}  # fmt: skip
+    problems = []
+    vehicles = []
+    for ns in sorted(set(odoms) | set(refs)):
+        label = ns or '/'
+        if ns in odoms and odoms[ns] != messages.ODOMETRY:
+            problems.append(f'{ns}/{ODOM} has type {odoms[ns]}, expected {messages.ODOMETRY}')
+        elif ns in refs and refs[ns] != messages.POSE_STAMPED:
+            problems.append(
+                f'{ns}/{REFERENCE} has type {refs[ns]}, expected {messages.POSE_STAMPED}'
+            )
+        elif ns not in refs:
+            problems.append(f'vehicle {label} has {ns}/{ODOM} but no {ns}/{REFERENCE} topic')
+        elif ns not in odoms:
+            problems.append(f'vehicle {label} has {ns}/{REFERENCE} but no {ns}/{ODOM} topic')
+        else:
+            vehicles.append(ns)
+    if not vehicles:
+        found = ', '.join(f'{n} ({t})' for n, t in sorted(topics.items())) or 'no topics'
+        detail = '; '.join(problems) if problems else f'the bag has {found}'
+        msg = (
+            f'{path}: no vehicle to infer: each needs <ns>/odom (nav_msgs/msg/Odometry) and '
+            f'<ns>/reference (geometry_msgs/msg/PoseStamped); {detail}'
+        )
+        raise CliError(msg)
+    return vehicles
+
+
+def infer_bag(
+    bag: Path,
+    output: Path,
+    settings: dict,
+    vehicles: list[str] | None = None,
+    copy_inputs: bool = True,
+    compression: str = 'zstd',
+    progress=None,
+) -> InferResult:
+    """Run the engine of every vehicle over ``bag`` and write the outputs to ``output``."""
+    engine_config, output_config = build_configs(settings)
+    start = time.monotonic()
+    with BagReader(bag) as reader:
+        topics = {name: info.msgtype for name, info in reader.topics.items()}
+        found = check_inputs(topics, bag)
+        if vehicles:
+            wanted = [v.rstrip('/') for v in vehicles]
+            missing = [v for v in wanted if v not in found]
+            if missing:
+                raise CliError(
+                    f'{bag}: no odom/reference for {", ".join(missing)}; found: '
+                    + ', '.join(v or '/' for v in found)
+                )
+            found = wanted
+        if reader.message_count == 0:
+            raise CliError(f'{bag}: the bag holds no messages')
+        if output.exists():
+            raise CliError(f'{output} exists already, not overwriting.')
+        engines = {v: VehicleEngine(engine_config, name=v) for v in found}
+        # bag topics are absolute: the un-namespaced vehicle's outputs go to /<output_ns>/...
+        encoders = {
+            v: OutputEncoder(output_config, v or '/', engine_config.prediction.enabled)
+            for v in found
+        }
+        malformed = {v: 0 for v in found}
+        route = {}
+        for v in found:
+            route[f'{v}/{ODOM}'] = (v, ODOM)
+            route[f'{v}/{REFERENCE}'] = (v, REFERENCE)
+            if topics.get(f'{v}/{PLAN}') == messages.PATH:
+                route[f'{v}/{PLAN}'] = (v, PLAN)
+        copies = [
+            f'{v}/{name}' for v in found for name in COPIED if f'{v}/{name}' in topics
+        ] if copy_inputs else []  # fmt: skip
+        span = max(reader.end_ns - reader.start_ns, 1)
+        written: Counter = Counter()
+        with BagWriter(output, compression=compression) as writer:
+            for topic in copies:
+                writer.add_topic(topic, topics[topic], reader.topics[topic].offered_qos)
+            for enc in encoders.values():
+                for topic, msgtype in enc.topics.items():
+                    writer.add_topic(topic, msgtype)
+
+            def emit(vehicle, estimates):
+                engine, enc = engines[vehicle], encoders[vehicle]
+                for est in estimates:
+                    for topic, stamp, data in enc.encode(
+                        est, engine.world_frame or '', engine.child_frame
+                    ):
+                        writer.write(topic, stamp, data)
+                        written[topic] += 1
+
+            count = 0
+            for topic, log_ns, raw in reader.messages(set(route) | set(copies)):
+                if topic in copies:
+                    writer.write(topic, log_ns, raw)
+                    written[topic] += 1
+                target = route.get(topic)
+                if target is None:
+                    continue
+                vehicle, kind = target
+                try:
+                    if kind == ODOM:
+                        engines[vehicle].add_odometry(messages.decode_odometry(raw))
+                    elif kind == REFERENCE:
+                        engines[vehicle].add_reference(messages.decode_pose_stamped(raw))
+                    else:
+                        engines[vehicle].add_plan(messages.decode_path(raw))
+                except messages.MessageError:
+                    malformed[vehicle] += 1
+                    continue
+                emit(vehicle, engines[vehicle].advance())
+                count += 1
+                if progress is not None and count % 500 == 0:
+                    progress('infer', (log_ns - reader.start_ns) / span)
+            for v in found:
+                emit(v, engines[v].finish())
+        if progress is not None:
+            progress('infer', 1.0)
+        duration = (reader.end_ns - reader.start_ns) / NS
+    return InferResult(
+        vehicles=found,
+        steps={v: e.stats.steps for v, e in engines.items()},
+        rejected={v: e.stats.rejected for v, e in engines.items()},
+        malformed=malformed,
+        time_jumps={v: e.stats.time_jumps for v, e in engines.items()},
+        duration_s=duration,
+        wall_s=time.monotonic() - start,
+        written=dict(written),
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = load_settings(args.config) if args.config else {}
+    settings = {k: v for k, v in settings.items() if k not in ('vehicles',)}
+    if args.algorithm:
+        settings['algorithm'] = args.algorithm
+    if args.rate is not None:
+        settings['rate'] = args.rate
+    bar = ProgressBar(enabled=not args.quiet)
+    try:
+        result = infer_bag(
+            args.bag, args.output, settings, args.vehicles, not args.no_inputs,
+            args.compression, bar,
+        )  # fmt: skip
+    except BagError as err:
+        raise CliError(str(err)) from err
+    finally:
+        bar.close()
+    for v in result.vehicles:
+        rejected = sum(result.rejected[v].values()) + result.malformed[v]
+        detail = ', '.join(f'{k}: {n}' for k, n in sorted(result.rejected[v].items()))
+        if result.malformed[v]:
+            detail = ', '.join(filter(None, [detail, f'malformed: {result.malformed[v]}']))
+        print(
+            f'{v or "/"}: {result.steps[v]} steps, {rejected} input(s) rejected'
+            + (f' ({detail})' if detail else '')
+            + (f', {result.time_jumps[v]} time jump(s)' if result.time_jumps[v] else '')
+        )
+    per_second = result.wall_s / max(result.duration_s, 1e-9)
+    print(
+        f'wrote {args.output}: {sum(result.written.values())} messages; '
+        f'{result.duration_s:.1f} s of flight in {result.wall_s:.2f} s '
+        f'({1000 * per_second:.1f} ms per flight-second)'
+    )
+    return 0

@@ -1,0 +1,143 @@
+"""``cloe_iv``: the CLOE-SM observer with an identifier that converges, and a bounded gain L.
+
+The observer is CLOE-SM's (DESIGN §3), semi-implicit in ``L e``::
+
+    zeta_hat' = A(Theta_m, c_m) zeta_hat + B(Theta_m) r + L e + Lambda |e|^p sign(e)
+
+but the model it runs on, ``(Theta_m, c_m)``, is the identifier's *usable* model: per block the
+latest estimate that was stable and at least converging (see
+:meth:`~cloe_ros.core.identifier.IvIdentifier._update_model`), so a transiently wrong estimate
+never destabilises the observer. The identifier is the filtered
+recursive instrumental-variable one of :mod:`cloe_ros.core.identifier`, fed with the measurements
+and the reference; its estimate ``Theta_hat`` is what is published.
+
+The gain L adapts as in the paper, plus leakage (sigma-modification) and a cap, so it stays
+bounded under persistent disturbance and noise::
+
+    l_i' = gamma_i e_i^2 - sigma (l_i - l_min),   l_min <= l_i <= l_max
+
+The floor ``l_min`` keeps the observer tied to the measurements while the model is still wrong
+(with the paper's L(0) = 0 and leakage, L would settle where the model error makes it, and the
+estimate would lag full-state measurements by centimetres).
+
+Identification pauses while the commanded altitude is at or below ``ground_altitude``: a vehicle
+told to stay on (or go to) the ground does not follow the closed-loop model, and recorded flights
+often end with a zero setpoint under a vehicle parked elsewhere. (The measured altitude is no
+guide: a landed vehicle's tracking marker sits a few centimetres up, and a simulated vehicle may
+fly at ground level.)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cloe_ros.core.estimator import EstimatorConfig, StepBuffers, observer_drift
+from cloe_ros.core.identifier import IvIdentifier
+from cloe_ros.core.model import COUPLED_BLOCKS, N_STATES, PAPER_COUPLING, check_shape
+
+_COUPLED = [(b.states[1], b.states[2]) for b in COUPLED_BLOCKS]
+
+
+class CloeIvEstimator:
+    """CLOE-SM observer + IV identifier for N vehicles (same interface as ``CloeEstimator``).
+
+    Args:
+        config: ``algorithm='cloe_iv'``; ``sm_gains``, ``sm_exponents``, ``gamma_l``,
+            ``l_initial``, ``l_leak``, ``l_max`` and ``identifier`` are used.
+        zeta0: First measurement (N, 12) or (12,).
+        r0: First reference (N, 4) or (4,).
+        h: Step, s (the identifier's filters are discretised for it).
+        n_vehicles: Number of vehicles when ``zeta0`` is (12,).
+
+    """
+
+    def __init__(
+        self,
+        config: EstimatorConfig,
+        zeta0: np.ndarray,
+        r0: np.ndarray,
+        h: float,
+        n_vehicles: int | None = None,
+    ) -> None:
+        zeta0 = np.asarray(zeta0, dtype=float)
+        r0 = np.asarray(r0, dtype=float)
+        check_shape('zeta0', zeta0, (N_STATES,))
+        n = zeta0.shape[0] if zeta0.ndim == 2 else (n_vehicles or 1)
+        self.config = config
+        self.h = float(h)
+        self.zeta_hat = np.array(np.broadcast_to(zeta0, (n, N_STATES)), order='C')
+        r0 = np.array(np.broadcast_to(r0, (n, 4)))
+        self.identifier = IvIdentifier(
+            config.identifier,
+            h,
+            self.zeta_hat,
+            r0,
+            None if config.theta_initial is None else np.asarray(config.theta_initial),
+        )
+        self.gain_l = np.full((n, N_STATES), max(float(config.l_initial), config.l_min))
+        self.lambda_ = np.tile(np.asarray(config.sm_gains, dtype=float), (n, 1))
+        self.exponents = np.tile(np.asarray(config.sm_exponents, dtype=float), (n, 1))
+        self.buffers = StepBuffers.allocate(n)
+        self.flying = np.ones(n, dtype=bool)
+
+    @property
+    def theta_hat(self) -> np.ndarray:
+        """The identifier's estimate (N, 16)."""
+        return self.identifier.theta
+
+    @property
+    def coupling(self) -> np.ndarray:
+        """Identified tilt couplings ``[c_x, c_y]`` (N, 2) (paper: ``+g``, ``-g``)."""
+        return self.identifier.coupling
+
+    @property
+    def model(self) -> tuple[np.ndarray, np.ndarray]:
+        """The model the observer and the predictions use: ``(theta (N, 16), c (N, 2))``, the
+        identifier's usable model (stable, from rows at least converging)."""
+        return self.identifier.model_theta, self.identifier.model_coupling
+
+    @property
+    def n_vehicles(self) -> int:
+        return self.zeta_hat.shape[0]
+
+    @property
+    def error(self) -> np.ndarray:
+        return self.buffers.e
+
+    def step(self, zeta: np.ndarray, r: np.ndarray, h: float) -> None:
+        """Advance ``h`` s (the constructor's step) to the measurement ``zeta`` (N, 12) with the
+        reference ``r`` (N, 4) of the same time."""
+        if abs(h - self.h) > 1e-12:
+            msg = f'cloe_iv runs at a fixed step of {self.h} s, got {h}'
+            raise ValueError(msg)
+        cfg, buf = self.config, self.buffers
+        e, tmp, tmp2 = buf.e, buf.tmp, buf.tmp2
+        np.subtract(zeta, self.zeta_hat, out=e)
+        theta_m, coupling_m = self.model
+        f = observer_drift(self.zeta_hat, theta_m, r, buf)
+        # the identified tilt couplings replace +-g in the velocity rows
+        for k, (row, col) in enumerate(_COUPLED):
+            f[:, row] += (coupling_m[:, k] - PAPER_COUPLING[k]) * self.zeta_hat[:, col]
+        np.abs(e, out=tmp)
+        np.power(tmp, self.exponents, out=tmp)
+        np.sign(e, out=tmp2)
+        tmp *= tmp2
+        tmp *= self.lambda_
+        f += tmp
+        np.multiply(self.gain_l, zeta, out=tmp)
+        tmp += f
+        tmp *= h
+        self.zeta_hat += tmp
+        np.multiply(self.gain_l, h, out=tmp2)
+        tmp2 += 1.0
+        self.zeta_hat /= tmp2
+        # bounded adaptive gain: l' = gamma e^2 - sigma (l - l_min), clipped to [l_min, l_max]
+        np.square(e, out=tmp)
+        tmp *= cfg.gamma_l
+        tmp -= cfg.l_leak * (self.gain_l - cfg.l_min)
+        tmp *= h
+        self.gain_l += tmp
+        np.clip(self.gain_l, cfg.l_min, cfg.l_max, out=self.gain_l)
+        # identify only while commanded to fly: on the ground the closed-loop model does not hold
+        self.flying = r[:, 3] > cfg.ground_altitude
+        self.identifier.step(zeta, r, self.flying)

@@ -1,0 +1,508 @@
+"""The inference engine: validated inputs in, estimates out, in fixed steps of message time.
+
+One :class:`VehicleEngine` per vehicle; the ROS node and ``cloe infer`` both feed it samples in
+arrival order and publish / write what it returns, so the same input messages give the same
+estimates online and offline.
+
+Timing. Time is the header stamp, never the wall clock. The engine steps on the grid
+``t_k = t_0 + k h`` (``h = 1/rate``, integer nanoseconds), where ``t_0`` is the first odometry
+stamp at or after the first reference stamp (so for a regular odometry stream at the engine's
+rate the grid falls on the samples). The step ``t_k -> t_k+1`` runs as soon as
+
+* an odometry sample stamped at or after ``t_k+1`` has arrived (the measurement at ``t_k+1`` is
+  interpolated linearly between the two odometry samples around it), and
+* a reference stamped at or after ``t_k+1`` has arrived (so every reference up to ``t_k+1`` is
+  known; the step uses the latest one at or before ``t_k+1``, the reference of the measurement's
+  time), or the odometry is ``reference_timeout`` ahead of ``t_k+1`` (a stopped or slow reference
+  stream is held).
+
+Each input topic must arrive in stamp order (DDS keeps per-publisher order; bags are read in
+order), so the estimates depend on the stamps alone, not on how the two topics interleave.
+
+Rejected inputs, never fed to the estimator, counted per reason: non-finite values, a quaternion
+far from unit norm, a frame other than the vehicle's world frame, a duplicate stamp, a stamp older
+than the previous one on the same topic. A forward gap longer than ``max_gap`` on the odometry is a
+time jump: the estimator is re-initialised on the new data (the identified model is kept). A jump
+backwards by more than ``max_gap`` (a restarted simulation or bag) clears the input buffers and
+re-initialises the same way.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from cloe_ros.core.algorithms import make_estimator
+from cloe_ros.core.estimator import ConfigError, EstimatorConfig
+from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
+from cloe_ros.core.kinematics import odometry_to_state, quaternion_yaw, unwrap_near
+from cloe_ros.core.model import unstable_blocks
+from cloe_ros.core.prediction import PredictionConfig, Predictor
+from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
+
+NS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """Settings of one vehicle's engine.
+
+    Attributes:
+        rate: Estimator steps per second of message time, Hz.
+        estimator: Algorithm and gains.
+        reference_timeout: How far (s) the odometry may run ahead of a step before the last
+            reference is held without waiting for a newer one.
+        max_gap: Odometry gap (s) treated as a time jump, forwards or backwards.
+        world_frame: Required ``header.frame_id``; empty: the first frame seen, then that one.
+        quaternion_tolerance: Largest accepted ``| ||q|| - 1 |``.
+        prediction: Horizon, pose spacing and rate of the anticipated paths.
+
+    """
+
+    rate: float = 100.0
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    reference_timeout: float = 0.25
+    max_gap: float = 1.0
+    world_frame: str = ''
+    quaternion_tolerance: float = 0.1
+    prediction: PredictionConfig = field(default_factory=PredictionConfig)
+
+    def __post_init__(self) -> None:
+        checks = (
+            ('rate', self.rate, 1.0, 10000.0),
+            ('reference_timeout', self.reference_timeout, 0.0, 60.0),
+            ('max_gap', self.max_gap, 0.001, 3600.0),
+            ('quaternion_tolerance', self.quaternion_tolerance, 0.0, 1.0),
+        )
+        for name, value, low, high in checks:
+            if not (math.isfinite(value) and low <= value <= high):
+                msg = f'{name} must be within [{low:g}, {high:g}], got {value!r}'
+                raise ConfigError(msg)
+
+    @property
+    def step_ns(self) -> int:
+        return round(NS / self.rate)
+
+
+@dataclass
+class Estimate:
+    """The engine's output at one step.
+
+    Attributes:
+        stamp_ns: Estimate time (a grid time), ns.
+        zeta_hat: Estimated state (12,); yaw unwrapped (continuous).
+        theta_hat: Identified parameters (16,).
+        gain_l: Observer gains L (12,).
+        measured: Measured state at ``stamp_ns`` (12,), interpolated; yaw unwrapped.
+        reference: Reference at ``stamp_ns`` (4,), yaw unwrapped.
+        coupling: Tilt couplings of the model (2,) (``+-g`` unless identified).
+        identification: Per identified row (``ROW_NAMES``): excitation, relative uncertainty and
+            status (``cloe_iv``); None for the paper's algorithms, which do not measure them.
+        prediction: Anticipated path, when one is due: stamps (n,) ns and states (n, 12).
+        prediction_status: ``PREDICTION_*`` code of the last prediction decision.
+        prediction_note: Why, in words.
+
+    """
+
+    stamp_ns: int
+    zeta_hat: np.ndarray
+    theta_hat: np.ndarray
+    gain_l: np.ndarray
+    measured: np.ndarray
+    reference: np.ndarray
+    coupling: np.ndarray | None = None
+    identification: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    prediction: tuple[np.ndarray, np.ndarray] | None = None
+    prediction_status: int = 0
+    prediction_note: str = ''
+
+    @property
+    def error(self) -> np.ndarray:
+        """``zeta - zeta_hat`` at ``stamp_ns``."""
+        return self.measured - self.zeta_hat
+
+
+#: Prediction decisions: withheld (no usable model), from a model not (yet) identified, identified.
+PREDICTION_WITHHELD, PREDICTION_PROVISIONAL, PREDICTION_IDENTIFIED = 0, 1, 2
+
+
+@dataclass
+class VehicleStats:
+    """Counters for diagnostics."""
+
+    odom_received: int = 0
+    odom_accepted: int = 0
+    reference_received: int = 0
+    reference_accepted: int = 0
+    rejected: Counter = field(default_factory=Counter)
+    steps: int = 0
+    time_jumps: int = 0
+    resets: int = 0
+    plans_received: int = 0
+    plans_accepted: int = 0
+    predictions: int = 0
+    predictions_withheld: int = 0
+    last_error_norm: float = float('nan')
+    last_stamp_ns: int | None = None
+
+
+EstimatorFactory = Callable[[EstimatorConfig, np.ndarray, np.ndarray, float], object]
+
+
+class VehicleEngine:
+    """Validates one vehicle's inputs and runs its estimator in fixed steps of message time."""
+
+    def __init__(
+        self,
+        config: EngineConfig,
+        name: str = '',
+        estimator_factory: EstimatorFactory = make_estimator,
+    ) -> None:
+        self.name = name
+        self.config = config
+        self.stats = VehicleStats()
+        self._factory = estimator_factory
+        self._odom: deque[tuple[int, np.ndarray]] = deque()
+        self._refs: deque[tuple[int, np.ndarray]] = deque()
+        self._frame = config.world_frame or None
+        self.child_frame = ''  # body frame of the first accepted odometry
+        self._yaw: float | None = None
+        self._est = None
+        self._t_ns: int | None = None  # last grid time processed
+        self._anchor_ns: int | None = None  # (re)start no earlier than this
+        self._anchor_exact = False  # (re)start exactly at _anchor_ns (after a reset)
+        self._model: tuple[np.ndarray, np.ndarray] | None = None  # theta_hat, L to restart with
+        self._pending: list[Estimate] = []  # estimates produced while handling a time jump
+        self._plan: tuple[np.ndarray, np.ndarray] | None = None  # stamps (K,), refs (K, 4)
+        self._predictor = Predictor(config.prediction)
+        self._prediction_slot: int | None = None
+        self._last_r: np.ndarray | None = None
+
+    # ----------------------------------------------------------------------------- inputs
+
+    @property
+    def world_frame(self) -> str | None:
+        return self._frame
+
+    def _check_frame(self, frame_id: str) -> str | None:
+        if self._frame is None:
+            self._frame = frame_id
+            return None
+        if frame_id != self._frame:
+            return 'wrong frame'
+        return None
+
+    def _check_stamp(self, stamp_ns: int, last_ns: int | None) -> str | None:
+        """'' for a backward time jump, a reason to reject, or None."""
+        if last_ns is None or stamp_ns > last_ns:
+            return None
+        if stamp_ns == last_ns:
+            return 'duplicate stamp'
+        if last_ns - stamp_ns > self.config.max_gap * NS:
+            return ''
+        return 'out-of-order stamp'
+
+    def _reject(self, reason: str) -> str:
+        self.stats.rejected[reason] += 1
+        return reason
+
+    def add_odometry(self, sample: OdometrySample) -> str | None:
+        """Accept an odometry sample; returns the reason if it was rejected."""
+        self.stats.odom_received += 1
+        values = (sample.position, sample.orientation, sample.linear, sample.angular)
+        if not all(np.all(np.isfinite(v)) for v in values):
+            return self._reject('non-finite odometry')
+        if abs(np.linalg.norm(sample.orientation) - 1.0) > self.config.quaternion_tolerance:
+            return self._reject('invalid quaternion')
+        reason = self._check_frame(sample.frame_id)
+        if reason:
+            return self._reject(reason)
+        last = self._odom[-1][0] if self._odom else None
+        reason = self._check_stamp(sample.stamp_ns, last)
+        if reason:
+            return self._reject(reason)
+        if reason == '':  # backwards jump: a new timeline
+            self._time_jump(sample.stamp_ns, clear_references=True)
+        elif last is not None and sample.stamp_ns - last > self.config.max_gap * NS:
+            self._time_jump(sample.stamp_ns, clear_references=False)
+        zeta = odometry_to_state(
+            sample.position, sample.orientation, sample.linear, sample.angular
+        )
+        if self._yaw is not None:
+            zeta[8] = unwrap_near(zeta[8], self._yaw)
+        self._yaw = float(zeta[8])
+        if not self.child_frame:
+            self.child_frame = sample.child_frame_id
+        self._odom.append((sample.stamp_ns, zeta))
+        self.stats.odom_accepted += 1
+        return None
+
+    def add_reference(self, sample: PoseSample) -> str | None:
+        """Accept a reference sample (position and yaw); returns the reason if rejected."""
+        self.stats.reference_received += 1
+        if not (np.all(np.isfinite(sample.position)) and np.all(np.isfinite(sample.orientation))):
+            return self._reject('non-finite reference')
+        if abs(np.linalg.norm(sample.orientation) - 1.0) > self.config.quaternion_tolerance:
+            return self._reject('invalid reference quaternion')
+        reason = self._check_frame(sample.frame_id)
+        if reason:
+            return self._reject('wrong reference frame')
+        last = self._refs[-1][0] if self._refs else None
+        reason = self._check_stamp(sample.stamp_ns, last)
+        if reason:
+            return self._reject(f'reference {reason}')
+        if reason == '':
+            self._refs.clear()
+        p = sample.position
+        r = np.array([p[0], p[1], float(quaternion_yaw(sample.orientation)), p[2]])
+        self._refs.append((sample.stamp_ns, r))
+        self.stats.reference_accepted += 1
+        return None
+
+    def add_plan(self, sample: PathSample) -> str | None:
+        """Accept planned future references (poses stamped at future times); returns the reason
+        if rejected. The latest plan is used for predictions until its last pose has passed."""
+        self.stats.plans_received += 1
+        if not (
+            np.all(np.isfinite(sample.positions)) and np.all(np.isfinite(sample.orientations))
+        ):
+            return self._reject('non-finite plan')
+        if len(sample.stamps_ns) == 0:
+            return self._reject('empty plan')
+        if np.any(np.diff(sample.stamps_ns) < 0):
+            return self._reject('plan stamps not increasing')
+        if self._check_frame(sample.frame_id):
+            return self._reject('wrong plan frame')
+        p = sample.positions
+        yaw = quaternion_yaw(sample.orientations)
+        refs = np.column_stack([p[:, 0], p[:, 1], np.unwrap(yaw), p[:, 2]])
+        self._plan = (np.asarray(sample.stamps_ns, dtype=np.int64), refs)
+        self.stats.plans_accepted += 1
+        return None
+
+    def _time_jump(self, new_stamp_ns: int, clear_references: bool) -> None:
+        """Finish what can be finished, then restart the estimator at ``new_stamp_ns``."""
+        self.stats.time_jumps += 1
+        self._pending.extend(self._run(force_reference=True))
+        self._stop_estimator()
+        self._odom.clear()
+        if clear_references:
+            self._refs.clear()
+        self._anchor_ns, self._anchor_exact = new_stamp_ns, False
+
+    def _stop_estimator(self) -> None:
+        if self._est is not None:
+            self._model = (self._est.theta_hat[0].copy(), self._est.gain_l[0].copy())
+        self._est = None
+        self._t_ns = None
+
+    def reset(self) -> None:
+        """Forget the identified model and re-initialise at the next step (inputs are kept)."""
+        self.stats.resets += 1
+        if self._t_ns is not None:
+            self._anchor_ns = self._t_ns + self.config.step_ns
+            self._anchor_exact = True
+        self._est = None
+        self._t_ns = None
+        self._model = None
+        self._prediction_slot = None
+
+    def update_estimator(self, config: EstimatorConfig) -> None:
+        """Use new gains from the next step on, keeping the state and the identified model.
+
+        A change of algorithm restarts the estimator (and forgets the model)."""
+        algorithm_changed = config.algorithm != self.config.estimator.algorithm
+        self.config = replace(self.config, estimator=config)
+        if algorithm_changed or config.algorithm == 'cloe_iv':
+            # (the IV identifier's filters and statistics depend on its settings: start over)
+            self.reset()
+        elif self._est is not None:
+            est = self._factory(config, self._est.zeta_hat[0], self._last_r, self._h)
+            est.theta_hat[:] = self._est.theta_hat
+            est.gain_l[:] = self._est.gain_l
+            self._est = est
+
+    # ------------------------------------------------------------------------------ steps
+
+    def advance(self) -> list[Estimate]:
+        """Run every step whose inputs are complete; returns their estimates in time order."""
+        out, self._pending = self._pending, []
+        out.extend(self._run(force_reference=False))
+        return out
+
+    def finish(self) -> list[Estimate]:
+        """No more input will come: run the remaining steps the odometry covers, holding the last
+        reference."""
+        out = self.advance()
+        out.extend(self._run(force_reference=True))
+        return out
+
+    def _measurement(self, t_ns: int) -> np.ndarray | None:
+        """The odometry state at ``t_ns`` interpolated linearly; None if not yet covered."""
+        odom = self._odom
+        if not odom or odom[-1][0] < t_ns or odom[0][0] > t_ns:
+            return None
+        # drop samples no longer needed: keep the last one at or before t_ns
+        while len(odom) > 1 and odom[1][0] <= t_ns:
+            odom.popleft()
+        t0, z0 = odom[0]
+        if t0 == t_ns or len(odom) == 1:
+            return z0.copy()
+        t1, z1 = odom[1]
+        w = (t_ns - t0) / (t1 - t0)
+        return z0 + w * (z1 - z0)
+
+    def _reference_at(self, t_ns: int, yaw_now: float) -> np.ndarray | None:
+        """The latest reference stamped at or before ``t_ns`` (yaw taken near ``yaw_now``)."""
+        refs = self._refs
+        while len(refs) > 1 and refs[1][0] <= t_ns:
+            refs.popleft()
+        if not refs or refs[0][0] > t_ns:
+            return None
+        r = refs[0][1].copy()
+        r[2] = unwrap_near(r[2], yaw_now)
+        return r
+
+    def _reference_complete(self, t_ns: int) -> bool:
+        """Every reference stamped up to ``t_ns`` has arrived, or the odometry is
+        ``reference_timeout`` ahead of it (the last reference is then held)."""
+        if self._refs and self._refs[-1][0] >= t_ns:
+            return True
+        timeout = round(self.config.reference_timeout * NS)
+        return bool(self._odom) and self._odom[-1][0] >= t_ns + timeout
+
+    def _start_time(self) -> int | None:
+        """Where the (re)started estimator begins: after a reset, the next grid time; otherwise
+        the first odometry stamp at or after both the first reference and the restart point, so
+        the grid follows the odometry's own clock."""
+        if self._anchor_exact:
+            return self._anchor_ns
+        earliest = max(self._refs[0][0], self._anchor_ns or self._refs[0][0])
+        for stamp, _ in self._odom:
+            if stamp >= earliest:
+                return stamp
+        return None
+
+    def _start(self, force_reference: bool) -> Estimate | None:
+        if not self._odom or not self._refs:
+            return None
+        t0 = self._start_time()
+        if t0 is None:
+            return None
+        zeta = self._measurement(t0)
+        if zeta is None:
+            return None
+        r = self._reference_at(t0, zeta[8])
+        if r is None:
+            return None
+        if not force_reference and not self._reference_complete(t0):
+            return None
+        config = self.config.estimator
+        iv = config.algorithm == 'cloe_iv'
+        if iv and self._model is not None and not unstable_blocks(self._model[0]):
+            # after a time jump the IV identifier starts over from its last (stable) estimate
+            config = replace(config, theta_initial=tuple(self._model[0]))
+        est = self._factory(config, zeta, r, self._h)
+        if self._model is not None and not iv:
+            est.theta_hat[0], est.gain_l[0] = self._model
+        self._est, self._t_ns, self._anchor_exact = est, t0, False
+        self._last_r = r
+        return self._estimate(t0, zeta, r)
+
+    def _run(self, force_reference: bool) -> list[Estimate]:
+        out: list[Estimate] = []
+        if self._est is None:
+            first = self._start(force_reference)
+            if first is None:
+                return out
+            out.append(first)
+        step = self.config.step_ns
+        h = step / NS
+        est = self._est
+        while True:
+            t_next = self._t_ns + step
+            if not force_reference and not self._reference_complete(t_next):
+                break
+            zeta = self._measurement(t_next)
+            if zeta is None:
+                break
+            r = self._reference_at(t_next, zeta[8])
+            est.step(zeta[None], r[None], h)
+            self._t_ns = t_next
+            self._last_r = r
+            out.append(self._estimate(t_next, zeta, r))
+        return out
+
+    def _estimate(self, t_ns: int, zeta: np.ndarray, r: np.ndarray) -> Estimate:
+        est = self._est
+        ident = getattr(est, 'identifier', None)
+        e = Estimate(
+            t_ns,
+            est.zeta_hat[0].copy(),
+            est.theta_hat[0].copy(),
+            est.gain_l[0].copy(),
+            zeta,
+            r,
+            coupling=est.coupling[0].copy(),
+            identification=None if ident is None else (
+                ident.excitation[0].copy(), ident.uncertainty[0].copy(), ident.status[0].copy()),
+        )  # fmt: skip
+        self.stats.steps += 1
+        self.stats.last_stamp_ns = t_ns
+        self.stats.last_error_norm = float(np.linalg.norm(e.error))
+        if self.config.prediction.enabled:
+            slot = t_ns // round(NS / self.config.prediction.rate)
+            if self._prediction_slot is None or slot > self._prediction_slot:
+                self._prediction_slot = slot
+                self._predict(e)
+        return e
+
+    def _predict(self, e: Estimate) -> None:
+        """Attach the anticipated path to ``e`` (or say why there is none)."""
+        theta, coupling = (m[0] for m in self._est.model)
+        unstable = unstable_blocks(theta, coupling)
+        if unstable:
+            e.prediction_status = PREDICTION_WITHHELD
+            e.prediction_note = (
+                f'withheld: the identified model is unstable ({", ".join(unstable)})'
+            )
+            self.stats.predictions_withheld += 1
+            return
+        plan = None
+        if self._plan is not None and self._plan[0][-1] > e.stamp_ns:
+            stamps, refs = self._plan
+            refs = refs.copy()
+            refs[:, 2] = refs[:, 2] + (unwrap_near(refs[0, 2], e.zeta_hat[8]) - refs[0, 2])
+            plan = ((stamps - e.stamp_ns) / NS, refs)
+        states = self._predictor.predict(e.zeta_hat, theta, coupling, e.reference, plan)
+        n = len(states)
+        step_ns = round(self.config.prediction.step * NS)
+        e.prediction = (e.stamp_ns + step_ns * np.arange(1, n + 1, dtype=np.int64), states)
+        self.stats.predictions += 1
+        if e.identification is None:
+            e.prediction_status = PREDICTION_PROVISIONAL
+            e.prediction_note = 'provisional: this algorithm does not check identifiability'
+            return
+        status = e.identification[2]
+        pending = [name for name, s in zip(ROW_NAMES, status) if s != IDENTIFIED]
+        if pending:
+            weak = [n for n, s in zip(ROW_NAMES, status) if s == NOT_IDENTIFIABLE]
+            e.prediction_status = PREDICTION_PROVISIONAL
+            e.prediction_note = 'provisional: ' + (
+                f'not identifiable: {", ".join(weak)}' if weak
+                else f'converging: {", ".join(pending)}')  # fmt: skip
+        else:
+            e.prediction_status = PREDICTION_IDENTIFIED
+            e.prediction_note = 'identified model'
+
+    @property
+    def started(self) -> bool:
+        return self._est is not None
+
+    @property
+    def _h(self) -> float:
+        return self.config.step_ns / NS

@@ -1,0 +1,233 @@
+"""Scoring identification and anticipation: parameter error over time, prediction RMSE per horizon
+against the constant-velocity and hold-position baselines (and, in simulation, the true model).
+
+The engine is run exactly as the node runs it (:class:`~cloe_ros.core.engine.VehicleEngine` on
+odometry and reference samples), so the numbers describe what a user gets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cloe_ros.core.engine import NS, EngineConfig, Estimate, VehicleEngine
+from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
+from cloe_ros.core.metrics import parameter_error
+from cloe_ros.core.model import PAPER_COUPLING
+from cloe_ros.core.prediction import PredictionConfig, Predictor, constant_velocity, hold_position
+from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
+
+HORIZONS = (0.5, 1.0, 2.0, 5.0)
+T0_NS = 1_700_000_000 * NS  # an epoch-like origin for simulated stamps
+
+
+@dataclass
+class PredictionScore:
+    """Prediction RMSE (m) per horizon for the estimator and the baselines, over ``count``
+    predictions issued in ``[t_from, t_to]`` s."""
+
+    horizons: tuple[float, ...]
+    model: np.ndarray
+    constant_velocity: np.ndarray
+    hold_position: np.ndarray
+    true_model: np.ndarray | None
+    count: np.ndarray
+    withheld: int
+    t_from: float
+    t_to: float
+
+
+@dataclass
+class Run:
+    """One algorithm's run: the estimates (decimated) and every prediction issued."""
+
+    algorithm: str
+    t: np.ndarray  # estimate times, s from the start
+    theta_hat: np.ndarray  # (T, 16)
+    coupling: np.ndarray  # (T, 2)
+    gain_l: np.ndarray  # (T, 12)
+    status: np.ndarray | None  # (T, 6) or None
+    excitation: np.ndarray | None
+    pred_t: np.ndarray  # issue times (P,), s
+    pred_states: list[np.ndarray]  # (n, 12) each
+    pred_zeta0: np.ndarray  # (P, 12) the estimate at issue time
+    pred_ref: np.ndarray  # (P, 4) the reference at issue time
+    pred_status: list[int]
+    withheld: int
+    engine: VehicleEngine = field(repr=False)
+
+
+def feed(
+    engine: VehicleEngine,
+    t: np.ndarray,
+    zeta: np.ndarray,
+    reference: np.ndarray,
+    plans: Callable[[float], tuple[np.ndarray, np.ndarray] | None] | None = None,
+    plan_every: float = 0.1,
+    record_every: int = 10,
+    progress: Callable[[float], None] | None = None,
+) -> tuple[list[Estimate], list[Estimate]]:
+    """Feed samples (stamps ``T0 + t``) to ``engine``; returns (decimated estimates, estimates
+    carrying a prediction decision)."""
+    recorded: list[Estimate] = []
+    predicted: list[Estimate] = []
+    next_plan = 0.0
+    count = 0
+    every = max(1, len(t) // 50)
+    for k in range(len(t)):
+        stamp = T0_NS + round(float(t[k]) * NS)
+        if plans is not None and t[k] >= next_plan:
+            next_plan = t[k] + plan_every
+            plan = plans(float(t[k]))
+            if plan is not None:
+                times, refs = plan
+                engine.add_plan(PathSample(
+                    stamp, 'world', T0_NS + np.round(times * NS).astype(np.int64),
+                    refs[:, [0, 1, 3]], yaw_quaternion(refs[:, 2])))  # fmt: skip
+        p, q, v, w = state_to_odometry(zeta[k])
+        engine.add_odometry(OdometrySample(stamp, 'world', 'base_link', p, q, v, w))
+        r = reference[k]
+        engine.add_reference(PoseSample(stamp, 'world', r[[0, 1, 3]], yaw_quaternion(r[2])))
+        for est in engine.advance():
+            if count % record_every == 0:
+                recorded.append(est)
+            if est.prediction_note:
+                predicted.append(est)
+            count += 1
+        if progress is not None and k % every == 0:
+            progress(k / len(t))
+    for est in engine.finish():
+        recorded.append(est)
+        if est.prediction_note:
+            predicted.append(est)
+    return recorded, predicted
+
+
+def collect(algorithm: str, engine: VehicleEngine, recorded, predicted) -> Run:
+    """Arrays of a run from the engine's outputs."""
+    t = np.array([(e.stamp_ns - T0_NS) / NS for e in recorded])
+    ident = [e.identification for e in recorded]
+    have_ident = all(i is not None for i in ident) and ident
+    made = [e for e in predicted if e.prediction is not None]
+    return Run(
+        algorithm=algorithm,
+        t=t,
+        theta_hat=np.array([e.theta_hat for e in recorded]),
+        coupling=np.array([e.coupling for e in recorded]),
+        gain_l=np.array([e.gain_l for e in recorded]),
+        status=np.array([i[2] for i in ident]) if have_ident else None,
+        excitation=np.array([i[0] for i in ident]) if have_ident else None,
+        pred_t=np.array([(e.stamp_ns - T0_NS) / NS for e in made]),
+        pred_states=[e.prediction[1] for e in made],
+        pred_zeta0=np.array([e.zeta_hat for e in made]).reshape(-1, 12),
+        pred_ref=np.array([e.reference for e in made]).reshape(-1, 4),
+        pred_status=[e.prediction_status for e in made],
+        withheld=sum(1 for e in predicted if e.prediction is None),
+        engine=engine,
+    )
+
+
+def actual_positions(t_truth: np.ndarray, zeta_truth: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """True/measured positions interpolated at ``times`` (NaN outside the data)."""
+    out = np.empty((len(times), 3))
+    for j, col in enumerate((0, 4, 10)):
+        out[:, j] = np.interp(times, t_truth, zeta_truth[:, col], left=np.nan, right=np.nan)
+    return out
+
+
+def score_predictions(
+    run: Run,
+    t_truth: np.ndarray,
+    zeta_truth: np.ndarray,
+    step: float,
+    horizons: Sequence[float] = HORIZONS,
+    t_from: float = 0.0,
+    t_to: float = np.inf,
+    true_model: tuple[np.ndarray, np.ndarray] | None = None,
+    plans: Callable[[float], tuple[np.ndarray, np.ndarray] | None] | None = None,
+) -> PredictionScore:
+    """RMSE of the predicted positions at each horizon against ``zeta_truth``, beside the
+    baselines from the same starting estimate; ``true_model = (theta, coupling)`` adds the
+    true-model predictor (same start, same reference handling: held, or ``plans(t0)`` with times
+    relative to the run's start)."""
+    horizons = tuple(horizons)
+    keep = [i for i, t0 in enumerate(run.pred_t) if t_from <= t0 <= t_to]
+    k_of = [round(h / step) for h in horizons]
+    sq = {name: [[] for _ in horizons] for name in ('model', 'cv', 'hold', 'true')}
+    truth_predictor = None
+    if true_model is not None:
+        n = max(k_of)
+        truth_predictor = Predictor(PredictionConfig(horizon=n * step, step=step))
+    for i in keep:
+        t0, states = run.pred_t[i], run.pred_states[i]
+        zeta0 = run.pred_zeta0[i]
+        dts = np.array([k * step for k in k_of])
+        actual = actual_positions(t_truth, zeta_truth, t0 + dts)
+        cv = constant_velocity(zeta0, dts)
+        hold = hold_position(zeta0, dts)
+        true_states = None
+        if truth_predictor is not None:
+            plan = plans(t0) if plans is not None else None
+            if plan is not None:
+                plan = (plan[0] - t0, plan[1].copy())
+                plan[1][:, 2] += np.round((zeta0[8] - plan[1][0, 2]) / (2 * np.pi)) * 2 * np.pi
+            true_states = truth_predictor.predict(zeta0, true_model[0], true_model[1],
+                                                  run.pred_ref[i], plan)  # fmt: skip
+        for j, k in enumerate(k_of):
+            if k > len(states) or not np.all(np.isfinite(actual[j])):
+                continue
+            sq['model'][j].append(np.sum((states[k - 1][[0, 4, 10]] - actual[j]) ** 2))
+            sq['cv'][j].append(np.sum((cv[j] - actual[j]) ** 2))
+            sq['hold'][j].append(np.sum((hold[j] - actual[j]) ** 2))
+            if true_states is not None:
+                sq['true'][j].append(np.sum((true_states[k - 1][[0, 4, 10]] - actual[j]) ** 2))
+
+    def rmse(name):
+        return np.array([np.sqrt(np.mean(v)) if v else np.nan for v in sq[name]])
+
+    return PredictionScore(
+        horizons=horizons,
+        model=rmse('model'),
+        constant_velocity=rmse('cv'),
+        hold_position=rmse('hold'),
+        true_model=rmse('true') if true_model is not None else None,
+        count=np.array([len(v) for v in sq['model']]),
+        withheld=run.withheld,
+        t_from=t_from,
+        t_to=float(min(t_to, run.pred_t[-1])) if len(run.pred_t) else t_from,
+    )
+
+
+def parameter_error_over_time(
+    run: Run, theta_true: np.ndarray, times: Sequence[float]
+) -> dict[float, dict[str, float]]:
+    """Relative parameter error per block at the estimates nearest ``times`` (s)."""
+    out = {}
+    for tq in times:
+        if not len(run.t) or tq > run.t[-1] + 1e-9:
+            continue
+        i = int(np.argmin(np.abs(run.t - tq)))
+        errors = parameter_error(run.theta_hat[i], theta_true)
+        out[float(tq)] = {k: float(v) for k, v in errors.items()}
+    return out
+
+
+def coupling_error(run: Run) -> np.ndarray:
+    """Relative error of the identified tilt couplings against ``+-g`` (T, 2)."""
+    return np.abs(run.coupling - PAPER_COUPLING) / np.abs(PAPER_COUPLING)
+
+
+def run_engine(
+    algorithm_config: EngineConfig,
+    t: np.ndarray,
+    zeta: np.ndarray,
+    reference: np.ndarray,
+    plans=None,
+    progress=None,
+) -> Run:
+    """One engine over samples; see :func:`feed`."""
+    engine = VehicleEngine(algorithm_config)
+    recorded, predicted = feed(engine, t, zeta, reference, plans, progress=progress)
+    return collect(algorithm_config.estimator.algorithm, engine, recorded, predicted)

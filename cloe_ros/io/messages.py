@@ -1,0 +1,265 @@
+"""CDR <-> samples for the topics of the interface contract (DESIGN §6), without rclpy.
+
+The nodes (raw subscriptions and raw publishing) and the offline tools (bags) both go through these
+functions, so the same bytes give the same samples and the same estimates give the same bytes.
+Serialization uses the rosbags type store of ROS 2 Jazzy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
+from cloe_ros.errors import CloeError
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+ODOMETRY = 'nav_msgs/msg/Odometry'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+PATH = 'nav_msgs/msg/Path'
+FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+CLOCK = 'rosgraph_msgs/msg/Clock'
+
+_T = TYPESTORE.types
+Time = _T['builtin_interfaces/msg/Time']
+Header = _T['std_msgs/msg/Header']
+Point = _T['geometry_msgs/msg/Point']
+Quaternion = _T['geometry_msgs/msg/Quaternion']
+Vector3 = _T['geometry_msgs/msg/Vector3']
+Pose = _T['geometry_msgs/msg/Pose']
+PoseStamped = _T[POSE_STAMPED]
+PoseWithCovariance = _T['geometry_msgs/msg/PoseWithCovariance']
+Twist = _T['geometry_msgs/msg/Twist']
+TwistWithCovariance = _T['geometry_msgs/msg/TwistWithCovariance']
+Odometry = _T[ODOMETRY]
+Path = _T[PATH]
+MultiArrayDimension = _T['std_msgs/msg/MultiArrayDimension']
+MultiArrayLayout = _T['std_msgs/msg/MultiArrayLayout']
+Float64MultiArray = _T[FLOAT64_MULTI_ARRAY]
+KeyValue = _T['diagnostic_msgs/msg/KeyValue']
+DiagnosticStatus = _T['diagnostic_msgs/msg/DiagnosticStatus']
+DiagnosticArray = _T[DIAGNOSTIC_ARRAY]
+Clock = _T[CLOCK]
+
+
+class MessageError(CloeError):
+    """Bytes that are not a valid message of the expected type."""
+
+
+def stamp_to_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_time(ns: int):
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def _deserialize(raw: bytes | memoryview, msgtype: str):
+    try:
+        return TYPESTORE.deserialize_cdr(raw, msgtype)
+    except Exception as err:
+        msg = f'cannot decode {len(raw)} bytes as {msgtype}: {err}'
+        raise MessageError(msg) from err
+
+
+def _xyz(v) -> np.ndarray:
+    return np.array([v.x, v.y, v.z], dtype=float)
+
+
+def _xyzw(q) -> np.ndarray:
+    return np.array([q.x, q.y, q.z, q.w], dtype=float)
+
+
+def odometry_from_msg(msg) -> OdometrySample:
+    """An :class:`OdometrySample` of a deserialized Odometry message."""
+    return OdometrySample(
+        stamp_ns=stamp_to_ns(msg.header.stamp),
+        frame_id=msg.header.frame_id,
+        child_frame_id=msg.child_frame_id,
+        position=_xyz(msg.pose.pose.position),
+        orientation=_xyzw(msg.pose.pose.orientation),
+        linear=_xyz(msg.twist.twist.linear),
+        angular=_xyz(msg.twist.twist.angular),
+        pose_covariance=np.asarray(msg.pose.covariance, dtype=float),
+        twist_covariance=np.asarray(msg.twist.covariance, dtype=float),
+    )
+
+
+def decode_odometry(raw: bytes | memoryview) -> OdometrySample:
+    """Decode a CDR ``nav_msgs/msg/Odometry``."""
+    return odometry_from_msg(_deserialize(raw, ODOMETRY))
+
+
+def decode_pose_stamped(raw: bytes | memoryview) -> PoseSample:
+    """Decode a CDR ``geometry_msgs/msg/PoseStamped``."""
+    msg = _deserialize(raw, POSE_STAMPED)
+    return PoseSample(
+        stamp_to_ns(msg.header.stamp),
+        msg.header.frame_id,
+        _xyz(msg.pose.position),
+        _xyzw(msg.pose.orientation),
+    )
+
+
+def decode_path(raw: bytes | memoryview) -> PathSample:
+    """Decode a CDR ``nav_msgs/msg/Path``."""
+    msg = _deserialize(raw, PATH)
+    n = len(msg.poses)
+    stamps = np.empty(n, dtype=np.int64)
+    positions = np.empty((n, 3))
+    orientations = np.empty((n, 4))
+    for i, ps in enumerate(msg.poses):
+        stamps[i] = stamp_to_ns(ps.header.stamp)
+        positions[i] = _xyz(ps.pose.position)
+        orientations[i] = _xyzw(ps.pose.orientation)
+    return PathSample(
+        stamp_to_ns(msg.header.stamp), msg.header.frame_id, stamps, positions, orientations
+    )
+
+
+def decode_float64_multi_array(raw: bytes | memoryview) -> tuple[list[str], np.ndarray]:
+    """Labels of the layout's dimensions and the data of a ``std_msgs/msg/Float64MultiArray``."""
+    msg = _deserialize(raw, FLOAT64_MULTI_ARRAY)
+    return [d.label for d in msg.layout.dim], np.asarray(msg.data, dtype=float)
+
+
+def decode_clock(raw: bytes | memoryview) -> int:
+    """The time (ns) of a ``rosgraph_msgs/msg/Clock``."""
+    return stamp_to_ns(_deserialize(raw, CLOCK).clock)
+
+
+def encode_odometry(sample: OdometrySample) -> bytes:
+    """CDR of a ``nav_msgs/msg/Odometry``; covariances default to zeros (unknown)."""
+    zeros = np.zeros(36)
+    p, q, v, w = sample.position, sample.orientation, sample.linear, sample.angular
+    msg = Odometry(
+        header=Header(stamp=ns_to_time(sample.stamp_ns), frame_id=sample.frame_id),
+        child_frame_id=sample.child_frame_id,
+        pose=PoseWithCovariance(
+            pose=Pose(
+                position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+            ),
+            covariance=zeros if sample.pose_covariance is None else sample.pose_covariance,
+        ),
+        twist=TwistWithCovariance(
+            twist=Twist(
+                linear=Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2])),
+                angular=Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2])),
+            ),
+            covariance=zeros if sample.twist_covariance is None else sample.twist_covariance,
+        ),
+    )
+    return bytes(TYPESTORE.serialize_cdr(msg, ODOMETRY))
+
+
+def _pose(position: np.ndarray, orientation: np.ndarray):
+    p, q = position, orientation
+    return Pose(
+        position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+        orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+    )
+
+
+def encode_pose_stamped(sample: PoseSample) -> bytes:
+    """CDR of a ``geometry_msgs/msg/PoseStamped``."""
+    msg = PoseStamped(
+        header=Header(stamp=ns_to_time(sample.stamp_ns), frame_id=sample.frame_id),
+        pose=_pose(sample.position, sample.orientation),
+    )
+    return bytes(TYPESTORE.serialize_cdr(msg, POSE_STAMPED))
+
+
+def encode_path(sample: PathSample) -> bytes:
+    """CDR of a ``nav_msgs/msg/Path`` whose poses carry their own (future) stamps."""
+    poses = [
+        PoseStamped(
+            header=Header(stamp=ns_to_time(int(s)), frame_id=sample.frame_id),
+            pose=_pose(p, q),
+        )
+        for s, p, q in zip(sample.stamps_ns, sample.positions, sample.orientations)
+    ]
+    msg = Path(
+        header=Header(stamp=ns_to_time(sample.stamp_ns), frame_id=sample.frame_id), poses=poses
+    )
+    return bytes(TYPESTORE.serialize_cdr(msg, PATH))
+
+
+def encode_float64_multi_array(labels: Sequence[str], data: np.ndarray) -> bytes:
+    """CDR of a ``std_msgs/msg/Float64MultiArray`` naming every entry.
+
+    The layout has one dimension per entry (size 1, stride 1): ``layout.dim[i].label`` names
+    ``data[i]``.
+    """
+    data = np.asarray(data, dtype=np.float64)
+    if len(labels) != data.size:
+        msg = f'{len(labels)} labels for {data.size} values'
+        raise ValueError(msg)
+    layout = MultiArrayLayout(
+        dim=[MultiArrayDimension(label=name, size=1, stride=1) for name in labels], data_offset=0
+    )
+    return bytes(
+        TYPESTORE.serialize_cdr(Float64MultiArray(layout=layout, data=data), FLOAT64_MULTI_ARRAY)
+    )
+
+
+def encode_clock(ns: int) -> bytes:
+    """CDR of a ``rosgraph_msgs/msg/Clock``."""
+    return bytes(TYPESTORE.serialize_cdr(Clock(clock=ns_to_time(ns)), CLOCK))
+
+
+#: DiagnosticStatus levels.
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+
+@dataclass(frozen=True)
+class Status:
+    """One ``diagnostic_msgs/DiagnosticStatus``: level, name, message, hardware id, key/values."""
+
+    level: int
+    name: str
+    message: str
+    hardware_id: str
+    values: tuple[tuple[str, str], ...]
+
+
+def encode_diagnostics(stamp_ns: int, statuses: Sequence[Status]) -> bytes:
+    """CDR of a ``diagnostic_msgs/msg/DiagnosticArray``."""
+    msg = DiagnosticArray(
+        header=Header(stamp=ns_to_time(stamp_ns), frame_id=''),
+        status=[
+            DiagnosticStatus(
+                level=int(s.level),
+                name=s.name,
+                message=s.message,
+                hardware_id=s.hardware_id,
+                values=[KeyValue(key=k, value=v) for k, v in s.values],
+            )
+            for s in statuses
+        ],
+    )
+    return bytes(TYPESTORE.serialize_cdr(msg, DIAGNOSTIC_ARRAY))
+
+
+def decode_diagnostics(raw: bytes | memoryview) -> tuple[int, list[Status]]:
+    """Stamp (ns) and statuses of a ``diagnostic_msgs/msg/DiagnosticArray``."""
+    msg = _deserialize(raw, DIAGNOSTIC_ARRAY)
+    statuses = [
+        Status(
+            level=int.from_bytes(s.level, 'little')
+            if isinstance(s.level, bytes)
+            else int(s.level),
+            name=s.name,
+            message=s.message,
+            hardware_id=s.hardware_id,
+            values=tuple((kv.key, kv.value) for kv in s.values),
+        )
+        for s in msg.status
+    ]
+    return stamp_to_ns(msg.header.stamp), statuses

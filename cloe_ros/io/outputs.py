@@ -1,0 +1,167 @@
+"""Estimates -> output messages of the contract (DESIGN §6), shared by the node and ``cloe infer``.
+
+Both call :meth:`OutputEncoder.encode` on the same sequence of estimates, so they emit the same
+messages with the same stamps: ``<ns>/<output_ns>/state`` at every step, ``<ns>/<output_ns>/
+parameters`` whenever the estimate time crosses a multiple of the parameter period (message time),
+and ``<ns>/<output_ns>/prediction`` whenever the engine attached an anticipated path.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cloe_ros.core.engine import NS, Estimate
+from cloe_ros.core.identifier import ROW_NAMES
+from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry
+from cloe_ros.core.model import COUPLED_BLOCKS, PARAMETER_NAMES, STATE_NAMES
+from cloe_ros.core.samples import OdometrySample, PathSample
+from cloe_ros.errors import CloeError
+from cloe_ros.io.messages import (
+    FLOAT64_MULTI_ARRAY,
+    ODOMETRY,
+    PATH,
+    encode_float64_multi_array,
+    encode_odometry,
+    encode_path,
+)
+
+#: Labels of ``cloe/parameters``: ``layout.dim[i].label`` names ``data[i]``. Theta_hat (16),
+#: L (12), the tilt couplings (2), then per identified row its excitation, relative uncertainty
+#: and status (0 not identifiable, 1 converging, 2 identified; NaN / -1 when the algorithm does not
+#: measure them), and the status of the last prediction (0 withheld, 1 provisional, 2 identified).
+PARAMETER_LABELS: tuple[str, ...] = tuple(
+    [f'theta_hat.{name}' for name in PARAMETER_NAMES]
+    + [f'L.{name}' for name in STATE_NAMES]
+    + [f'coupling.{b.name}' for b in COUPLED_BLOCKS]
+    + [f'excitation.{row}' for row in ROW_NAMES]
+    + [f'uncertainty.{row}' for row in ROW_NAMES]
+    + [f'status.{row}' for row in ROW_NAMES]
+    + ['prediction.status']
+)
+
+
+class OutputConfigError(CloeError, ValueError):
+    """Output settings that cannot be used."""
+
+
+def join_topic(*parts: str) -> str:
+    """Join namespace parts into a topic name (relative if the first part is)."""
+    text = '/'.join(p.strip('/') for p in parts if p and p.strip('/'))
+    return ('/' if parts and parts[0].startswith('/') else '') + text
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """What is published for each vehicle.
+
+    Attributes:
+        output_ns: Namespace of the outputs under the vehicle's (``cloe`` in the contract).
+        parameters_rate: ``parameters`` messages per second of message time, Hz.
+
+    """
+
+    output_ns: str = 'cloe'
+    parameters_rate: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not (0.01 <= self.parameters_rate <= 10000.0):
+            msg = f'parameters_rate must be within [0.01, 10000] Hz, got {self.parameters_rate}'
+            raise OutputConfigError(msg)
+        ns = self.output_ns.strip('/')
+        if not ns or any(not (c.isalnum() or c in '_/') for c in ns):
+            msg = f'output_ns {self.output_ns!r} is not a valid namespace'
+            raise OutputConfigError(msg)
+
+
+class OutputEncoder:
+    """Turns one vehicle's estimates into ``(topic, stamp_ns, cdr)`` records."""
+
+    def __init__(self, config: OutputConfig, vehicle: str = '', predictions: bool = True) -> None:
+        self.config = config
+        self.vehicle = vehicle
+        self.predictions = predictions
+        self.state_topic = join_topic(vehicle, config.output_ns, 'state')
+        self.parameters_topic = join_topic(vehicle, config.output_ns, 'parameters')
+        self.prediction_topic = join_topic(vehicle, config.output_ns, 'prediction')
+        self._period_ns = round(NS / config.parameters_rate)
+        self._last_slot: int | None = None
+        self._prediction_status = 0
+
+    @property
+    def topics(self) -> dict[str, str]:
+        """Output topic names and their message types."""
+        topics = {self.state_topic: ODOMETRY, self.parameters_topic: FLOAT64_MULTI_ARRAY}
+        if self.predictions:
+            topics[self.prediction_topic] = PATH
+        return topics
+
+    def encode(
+        self, estimate: Estimate, world_frame: str, child_frame: str
+    ) -> list[tuple[str, int, bytes]]:
+        out = [(self.state_topic, estimate.stamp_ns, encode_state(estimate, world_frame,
+                                                                   child_frame))]  # fmt: skip
+        if estimate.prediction is not None or estimate.prediction_note:
+            self._prediction_status = estimate.prediction_status
+        if estimate.prediction is not None:
+            out.append(
+                (
+                    self.prediction_topic,
+                    estimate.stamp_ns,
+                    encode_prediction(estimate, world_frame),
+                )
+            )
+        slot = estimate.stamp_ns // self._period_ns
+        if self._last_slot is None or slot > self._last_slot:
+            self._last_slot = slot
+            out.append(
+                (self.parameters_topic, estimate.stamp_ns,
+                 encode_parameters(estimate, self._prediction_status))
+            )  # fmt: skip
+        return out
+
+    def reset(self) -> None:
+        self._last_slot = None
+
+
+def encode_state(estimate: Estimate, world_frame: str, child_frame: str) -> bytes:
+    """``cloe/state``: the estimated state as Odometry (pose in world, twist in body, REP-105)."""
+    position, quaternion, v_body, w_body = state_to_odometry(estimate.zeta_hat)
+    return encode_odometry(
+        OdometrySample(
+            estimate.stamp_ns, world_frame, child_frame, position, quaternion, v_body, w_body
+        )
+    )
+
+
+def parameter_vector(estimate: Estimate, prediction_status: int = 0) -> np.ndarray:
+    """The values of ``cloe/parameters`` in ``PARAMETER_LABELS`` order."""
+    n_rows = len(ROW_NAMES)
+    if estimate.identification is None:
+        ident = np.concatenate([np.full(2 * n_rows, np.nan), np.full(n_rows, -1.0)])
+    else:
+        exc, unc, status = estimate.identification
+        ident = np.concatenate([exc, unc, status.astype(float)])
+    coupling = (
+        estimate.coupling if estimate.coupling is not None
+        else np.array([b.coupling for b in COUPLED_BLOCKS])
+    )  # fmt: skip
+    return np.concatenate(
+        [estimate.theta_hat, estimate.gain_l, coupling, ident, [float(prediction_status)]]
+    )
+
+
+def encode_parameters(estimate: Estimate, prediction_status: int = 0) -> bytes:
+    """``cloe/parameters``, labelled (see ``PARAMETER_LABELS``)."""
+    return encode_float64_multi_array(
+        PARAMETER_LABELS, parameter_vector(estimate, prediction_status)
+    )
+
+
+def encode_prediction(estimate: Estimate, world_frame: str) -> bytes:
+    """``cloe/prediction``: the anticipated path, poses stamped at their future times."""
+    stamps, states = estimate.prediction
+    positions = states[:, [0, 4, 10]]
+    orientations = euler_to_quaternion(states[:, 6], states[:, 2], states[:, 8])
+    return encode_path(PathSample(estimate.stamp_ns, world_frame, stamps, positions, orientations))

@@ -1,0 +1,167 @@
+"""What every node of the package shares: start/stop, parameter validation helpers, QoS, names.
+
+The only modules that import rclpy are under ``cloe_ros.ros``.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Iterable, Sequence
+
+import rclpy
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+
+NS = 1_000_000_000
+
+
+def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+    """Start rclpy, spin the node until Ctrl-C / SIGTERM / shutdown, then clean up.
+
+    SIGINT and SIGTERM reach rclpy as ``ExternalShutdownException``; ``destroy_node`` runs in
+    ``finally`` so nodes that hold files (the recorder) close them completely. A node can end the
+    process by calling ``rclpy.shutdown(context=...)`` (e.g. a player at the end of its bag).
+    Returns the exit status: 0, or 1 when the node could not be created.
+    """
+    rclpy.init(args=args if args is not None else sys.argv)
+    node = None
+    status = 0
+    try:
+        node = node_factory()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ParameterError as err:
+        print(f'ERROR: {err}', file=sys.stderr)
+        status = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status
+
+
+class ParameterError(ValueError):
+    """A parameter value the node cannot start with (reported, exit status 1)."""
+
+
+def describe(
+    description: str,
+    *,
+    read_only: bool = False,
+    float_range: tuple[float, float] | None = None,
+    int_range: tuple[int, int] | None = None,
+    additional_constraints: str = '',
+    dynamic_typing: bool = False,
+    parameter_type: int = ParameterType.PARAMETER_NOT_SET,
+) -> ParameterDescriptor:
+    """A ``ParameterDescriptor`` with an optional numeric range (step 0 = continuous)."""
+    d = ParameterDescriptor(
+        type=parameter_type,
+        description=description,
+        read_only=read_only,
+        additional_constraints=additional_constraints,
+        dynamic_typing=dynamic_typing,
+    )
+    if float_range is not None:
+        d.floating_point_range = [
+            FloatingPointRange(from_value=float(float_range[0]), to_value=float(float_range[1]))
+        ]
+    if int_range is not None:
+        d.integer_range = [IntegerRange(from_value=int(int_range[0]), to_value=int(int_range[1]))]
+    return d
+
+
+def declare(node: Node, name: str, default, descriptor: ParameterDescriptor):
+    """Declare a parameter and return its value.
+
+    Friendlier than plain rclpy in two ways users hit on the command line: an integer given for a
+    floating-point parameter (``-p rate:=100``) is taken as a float, and an empty list is taken
+    for an array parameter of any type. A default of ``[]`` needs ``descriptor.type`` and declares
+    the parameter with that type (value ``[]`` when not set). Any other invalid override (type or
+    range) raises :class:`ParameterError` with rclpy's reason.
+    """
+    overrides = getattr(node, '_parameter_overrides', None)
+    override = overrides.get(name) if isinstance(overrides, dict) else None
+    empty_array = isinstance(default, list) and not default
+    if override is not None:
+        value = override.value
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            overrides[name] = Parameter(name, Parameter.Type.DOUBLE, float(value))
+        elif isinstance(default, list) and isinstance(value, (list, tuple)) and not list(value):
+            ptype = Parameter.Type(descriptor.type) if empty_array else (
+                Parameter.Type.from_parameter_value(default))  # fmt: skip
+            overrides[name] = Parameter(name, ptype, [])
+    try:
+        if empty_array:
+            value = node.declare_parameter(name, Parameter.Type(descriptor.type), descriptor).value
+            return [] if value is None else value
+        return node.declare_parameter(name, default, descriptor).value
+    except (
+        rclpy.exceptions.InvalidParameterTypeException,
+        rclpy.exceptions.InvalidParameterValueException,
+    ) as err:
+        raise ParameterError(f'parameter {name!r}: {err}') from err
+
+
+def refuse(reason: str) -> SetParametersResult:
+    return SetParametersResult(successful=False, reason=reason)
+
+
+def accept() -> SetParametersResult:
+    return SetParametersResult(successful=True)
+
+
+STRING_ARRAY = ParameterType.PARAMETER_STRING_ARRAY
+
+
+def qos(reliable: bool = True, depth: int = 100, transient_local: bool = False) -> QoSProfile:
+    """A keep-last QoS profile."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=(
+            DurabilityPolicy.TRANSIENT_LOCAL if transient_local else DurabilityPolicy.VOLATILE
+        ),
+    )
+
+
+def vehicle_topic(vehicle: str, name: str) -> str:
+    """``<vehicle>/<name>``, or ``name`` (relative to the node's namespace) for no vehicle."""
+    vehicle = vehicle.rstrip('/')
+    return f'{vehicle}/{name}' if vehicle else name
+
+
+def check_vehicles(vehicles: Iterable[str]) -> list[str]:
+    """Validate a ``vehicles`` parameter: unique namespaces made of ``[A-Za-z0-9_/]``."""
+    out = []
+    for v in vehicles:
+        v = v.strip()
+        if not v or any(not (c.isalnum() or c in '_/') for c in v) or '//' in v:
+            raise ParameterError(
+                f'vehicle namespace {v!r} is not valid: use names like /uav1 (letters, digits, '
+                '_ and /)'
+            )
+        if v[0].isdigit() or (v.startswith('/') and len(v) > 1 and v[1].isdigit()):
+            raise ParameterError(f'vehicle namespace {v!r} must not start with a digit')
+        out.append(v.rstrip('/'))
+    if len(set(out)) != len(out):
+        raise ParameterError(f'vehicle namespaces must be unique, got {out}')
+    return out

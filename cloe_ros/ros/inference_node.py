@@ -1,0 +1,425 @@
+"""``cloe_inference``: CLOE / CLOE-SM trajectory inference for one or many vehicles.
+
+Per vehicle namespace ``<ns>`` (none for a single vehicle):
+
+* subscribes ``<ns>/odom`` (nav_msgs/Odometry), ``<ns>/reference`` (geometry_msgs/PoseStamped)
+  and, optionally, ``<ns>/reference_plan`` (nav_msgs/Path, planned future references), as raw CDR
+  decoded by the same code as ``cloe infer``;
+* runs a :class:`cloe_ros.core.engine.VehicleEngine` in fixed steps of message time (header
+  stamps; never the wall clock);
+* publishes ``<ns>/<output_ns>/state`` (nav_msgs/Odometry) every step,
+  ``<ns>/<output_ns>/parameters`` (std_msgs/Float64MultiArray, labelled) at ``parameters_rate`` and
+  ``<ns>/<output_ns>/prediction`` (nav_msgs/Path, poses at future stamps) at ``prediction_rate``;
+* publishes ``/diagnostics`` every ``diagnostics_period`` and serves ``~/reset``
+  (std_srvs/Trigger).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
+from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
+from cloe_ros.io import messages
+from cloe_ros.io.config import ALGORITHMS, DEFAULTS, SettingsError, build_configs
+from cloe_ros.io.messages import MessageError, Status, encode_diagnostics
+from cloe_ros.io.outputs import OutputConfig, OutputEncoder
+from cloe_ros.ros.common import (
+    STRING_ARRAY,
+    ParameterError,
+    accept,
+    check_vehicles,
+    declare,
+    describe,
+    qos,
+    refuse,
+    run_node,
+    vehicle_topic,
+)
+
+#: Parameters whose change restarts the estimators (the identified model is forgotten).
+RESTARTING = ('algorithm', 'rate')
+
+
+class InferenceNode(Node):
+    """The inference node; see the module docstring and the README for its interface."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('cloe_inference', **kwargs)
+        declared = self._declare_parameters()
+        self.engine_config, self.output_config = self._configs(self._values())
+        vehicles = check_vehicles(declared['vehicles'])
+        self.vehicles = vehicles or ['']
+        reliable = self.get_parameter('qos_reliability').value == 'reliable'
+        depth = self.get_parameter('qos_depth').value
+        in_qos = qos(reliable=reliable, depth=depth)
+        out_qos = qos(reliable=True, depth=depth)
+        self.engines: dict[str, VehicleEngine] = {}
+        self.encoders: dict[str, OutputEncoder] = {}
+        self.publishers_: dict[str, object] = {}
+        self.malformed: dict[str, int] = {}
+        for v in self.vehicles:
+            self._make_vehicle(v)
+            events = SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos(v))
+            self.create_subscription(
+                Odometry, vehicle_topic(v, 'odom'), self._odometry_callback(v), in_qos,
+                raw=True, event_callbacks=events,
+            )  # fmt: skip
+            self.create_subscription(
+                PoseStamped, vehicle_topic(v, 'reference'), self._reference_callback(v), in_qos,
+                raw=True, event_callbacks=events,
+            )  # fmt: skip
+            self.create_subscription(
+                Path, vehicle_topic(v, 'reference_plan'), self._plan_callback(v), in_qos,
+                raw=True,
+            )  # fmt: skip
+            enc = self.encoders[v]
+            self.publishers_[enc.state_topic] = self.create_publisher(
+                Odometry, enc.state_topic, out_qos
+            )
+            self.publishers_[enc.parameters_topic] = self.create_publisher(
+                Float64MultiArray, enc.parameters_topic, out_qos
+            )
+            if enc.predictions:
+                self.publishers_[enc.prediction_topic] = self.create_publisher(
+                    Path, enc.prediction_topic, out_qos
+                )
+        self.diagnostics_pub = self.create_publisher(
+            DiagnosticArray, '/diagnostics', qos(depth=10)
+        )
+        self._diag_timer = self.create_timer(
+            self.get_parameter('diagnostics_period').value, self._publish_diagnostics
+        )
+        self._last_diag = (time.monotonic(), {v: 0 for v in self.vehicles})
+        self.create_service(Trigger, '~/reset', self._reset_service)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._warned: set[tuple[str, str]] = set()
+        self._last_estimate: dict[str, object] = {}
+        self._last_prediction_note: dict[str, str] = {}
+        names = ', '.join(v or '/' for v in self.vehicles)
+        self.get_logger().info(
+            f'ready: {self.engine_config.estimator.algorithm} at {self.engine_config.rate:g} Hz '
+            f'for {names}'
+        )
+
+    # ------------------------------------------------------------------------- parameters
+
+    def _declare_parameters(self) -> dict:
+        ro = {'read_only': True}
+        p = [
+            ('vehicles', [], describe(
+                'vehicle namespaces, e.g. [/uav1, /uav2]; empty: one vehicle, topics relative to '
+                'the node namespace', parameter_type=STRING_ARRAY, **ro)),
+            ('algorithm', DEFAULTS['algorithm'], describe(
+                'estimator: ' + ' | '.join(ALGORITHMS) + ' (cloe and cloe_sm as the paper states '
+                'them; cloe_iv identifies with instrumental variables); changing it restarts',
+                additional_constraints='one of ' + ', '.join(ALGORITHMS))),
+            ('rate', DEFAULTS['rate'], describe(
+                'estimator steps per second of message time, Hz (changing it restarts)',
+                float_range=(1.0, 2000.0))),
+            ('gamma_theta', DEFAULTS['gamma_theta'], describe(
+                'identifier gain Gamma (paper: 400)', float_range=(0.0, 1e6))),
+            ('gamma_l', DEFAULTS['gamma_l'], describe(
+                'adaptive observer-gain rate gamma (paper: 400)', float_range=(0.0, 1e6))),
+            ('l_initial', DEFAULTS['l_initial'], describe('initial observer gain L(0), 1/s',
+                                        float_range=(0.0, 1e4))),
+            ('sm_gains', DEFAULTS['sm_gains'], describe(
+                'sliding-mode gains alpha, one per state (paper Table 1)',
+                additional_constraints='12 values >= 0')),
+            ('sm_exponents', DEFAULTS['sm_exponents'], describe(
+                'sliding-mode exponents p, one per state',
+                additional_constraints='12 values in [0, 1)')),
+            ('reference_timeout', DEFAULTS['reference_timeout'], describe(
+                'odometry lead (s) after which a missing newer reference is held',
+                float_range=(0.0, 60.0))),
+            ('max_gap', DEFAULTS['max_gap'], describe(
+                'odometry gap (s) treated as a time jump: the estimator re-initialises',
+                float_range=(0.001, 3600.0))),
+            ('world_frame', DEFAULTS['world_frame'], describe(
+                'required header.frame_id of odom and reference; empty: the first one seen')),
+            ('output_ns', DEFAULTS['output_ns'], describe(
+                'namespace of the outputs under each vehicle namespace', **ro)),
+            ('parameters_rate', DEFAULTS['parameters_rate'], describe(
+                'parameters messages per second of message time, Hz',
+                float_range=(0.01, 1000.0))),
+            ('prediction_horizon', DEFAULTS['prediction_horizon'], describe(
+                'anticipated path length, s (0: no predictions)', float_range=(0.0, 120.0),
+                **ro)),
+            ('prediction_step', DEFAULTS['prediction_step'], describe(
+                'spacing of the predicted poses, s', float_range=(0.001, 10.0), **ro)),
+            ('prediction_rate', DEFAULTS['prediction_rate'], describe(
+                'predictions per second of message time, Hz', float_range=(0.01, 1000.0),
+                **ro)),
+            ('l_leak', DEFAULTS['l_leak'], describe(
+                'cloe_iv: leakage of the observer gain L, 1/s', float_range=(0.0, 1e3))),
+            ('l_min', DEFAULTS['l_min'], describe(
+                'cloe_iv: lower bound of L, 1/s', float_range=(0.0, 1e6))),
+            ('l_max', DEFAULTS['l_max'], describe(
+                'cloe_iv: upper bound of L, 1/s', float_range=(1e-6, 1e6))),
+            ('id_bandwidth', DEFAULTS['id_bandwidth'], describe(
+                "cloe_iv: identifier's filter bandwidth, rad/s", float_range=(0.1, 1000.0))),
+            ('id_highpass', DEFAULTS['id_highpass'], describe(
+                "cloe_iv: identifier's high-pass corner, rad/s", float_range=(0.001, 100.0))),
+            ('id_window', DEFAULTS['id_window'], describe(
+                'cloe_iv: forgetting time constant of the estimate, s',
+                float_range=(0.1, 1e6))),
+            ('id_excitation_window', DEFAULTS['id_excitation_window'], describe(
+                'cloe_iv: time constant of the excitation measure, s',
+                float_range=(0.1, 1e6))),
+            ('id_excitation_threshold', DEFAULTS['id_excitation_threshold'], describe(
+                'cloe_iv: smallest canonical correlation counted as excited',
+                float_range=(0.0, 1.0))),
+            ('estimate_coupling', DEFAULTS['estimate_coupling'], describe(
+                'cloe_iv: identify the tilt couplings (the paper fixes them at +-g)')),
+            ('ground_altitude', DEFAULTS['ground_altitude'], describe(
+                'cloe_iv: identification pauses while the commanded altitude is at or below '
+                'this, m (negative: never)', float_range=(-1e3, 1e3))),
+            ('diagnostics_period', 1.0, describe(
+                '/diagnostics period, s', float_range=(0.05, 60.0), **ro)),
+            ('qos_reliability', 'reliable', describe(
+                'QoS reliability of the subscriptions: reliable | best_effort', **ro,
+                additional_constraints='reliable or best_effort')),
+            ('qos_depth', 100, describe('QoS history depth', int_range=(1, 10000), **ro)),
+        ]  # fmt: skip
+        values = {name: declare(self, name, default, d) for name, default, d in p}
+        if values['qos_reliability'] not in ('reliable', 'best_effort'):
+            raise ParameterError("parameter 'qos_reliability' must be reliable or best_effort")
+        return values
+
+    def _values(self, overrides: dict | None = None) -> dict:
+        values = {n: self.get_parameter(n).value for n in DEFAULTS}
+        values.update(overrides or {})
+        return values
+
+    @staticmethod
+    def _configs(values: dict) -> tuple[EngineConfig, OutputConfig]:
+        """Build the configs; ``ParameterError`` with the reason if a value cannot be used."""
+        try:
+            return build_configs(values)
+        except SettingsError as err:
+            raise ParameterError(str(err)) from err
+
+    def _on_set_parameters(self, params):
+        changes = {p.name: p.value for p in params}
+        try:
+            engine_config, output_config = self._configs(self._values(changes))
+        except ParameterError as err:
+            return refuse(str(err))
+        restart = any(
+            n in changes and changes[n] != self.get_parameter(n).value for n in RESTARTING
+        )
+        self.engine_config, self.output_config = engine_config, output_config
+        for v, engine in self.engines.items():
+            if restart:
+                self._make_vehicle(v, keep_stats=True)
+            else:
+                engine.config = replace(engine.config, reference_timeout=
+                                        engine_config.reference_timeout,
+                                        max_gap=engine_config.max_gap)  # fmt: skip
+                engine.update_estimator(engine_config.estimator)
+            if 'parameters_rate' in changes:
+                self.encoders[v] = OutputEncoder(output_config, v, self.encoders[v].predictions)
+        if restart:
+            self.get_logger().info(
+                f'restarted the estimators: {engine_config.estimator.algorithm} at '
+                f'{engine_config.rate:g} Hz'
+            )
+        return accept()
+
+    def _make_vehicle(self, vehicle: str, keep_stats: bool = False) -> None:
+        old = self.engines.get(vehicle)
+        engine = VehicleEngine(self.engine_config, name=vehicle)
+        if keep_stats and old is not None:
+            engine.stats = old.stats
+            engine.stats.resets += 1
+        self.engines[vehicle] = engine
+        self.encoders[vehicle] = OutputEncoder(
+            self.output_config, vehicle, self.engine_config.prediction.enabled
+        )
+        self.malformed.setdefault(vehicle, 0)
+
+    # -------------------------------------------------------------------------- callbacks
+
+    def _odometry_callback(self, vehicle: str):
+        engine = self.engines
+
+        def callback(raw: bytes) -> None:
+            try:
+                sample = messages.decode_odometry(raw)
+            except MessageError as err:
+                self._malformed(vehicle, 'odom', err)
+                return
+            reason = engine[vehicle].add_odometry(sample)
+            if reason:
+                self._warn_once(vehicle, reason)
+            self._publish(vehicle)
+
+        return callback
+
+    def _reference_callback(self, vehicle: str):
+        engine = self.engines
+
+        def callback(raw: bytes) -> None:
+            try:
+                sample = messages.decode_pose_stamped(raw)
+            except MessageError as err:
+                self._malformed(vehicle, 'reference', err)
+                return
+            reason = engine[vehicle].add_reference(sample)
+            if reason:
+                self._warn_once(vehicle, reason)
+            self._publish(vehicle)
+
+        return callback
+
+    def _plan_callback(self, vehicle: str):
+        engine = self.engines
+
+        def callback(raw: bytes) -> None:
+            try:
+                sample = messages.decode_path(raw)
+            except MessageError as err:
+                self._malformed(vehicle, 'reference_plan', err)
+                return
+            reason = engine[vehicle].add_plan(sample)
+            if reason:
+                self._warn_once(vehicle, reason)
+
+        return callback
+
+    def _malformed(self, vehicle: str, topic: str, err: Exception) -> None:
+        self.malformed[vehicle] += 1
+        self._warn_once(vehicle, f'malformed {topic}: {err}')
+
+    def _warn_once(self, vehicle: str, reason: str) -> None:
+        key = (vehicle, reason.split(':')[0])
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(
+                f'{vehicle or "/"}: rejected input ({reason}); further ones are only counted '
+                'in /diagnostics'
+            )
+
+    def _incompatible_qos(self, vehicle: str):
+        def callback(event) -> None:
+            self.get_logger().warning(
+                f'{vehicle or "/"}: a publisher offers an incompatible QoS '
+                f'({event.last_policy_kind}); for best-effort sensors set '
+                'qos_reliability:=best_effort'
+            )
+
+        return callback
+
+    def _identification_values(self, vehicle: str) -> list[tuple[str, str]]:
+        """The identifier's status (per row: excitation, uncertainty, status), the prediction's."""
+        last = self._last_estimate.get(vehicle)
+        if last is None:
+            return []
+        out = [('prediction', self._last_prediction_note.get(vehicle, 'none yet'))]
+        if last.identification is None:
+            out.append(('identifier', 'gradient (paper): identifiability not measured'))
+            return out
+        exc, unc, status = last.identification
+        for name, e, u, st in zip(ROW_NAMES, exc, unc, status):
+            out.append(
+                (
+                    f'identifier: {name}',
+                    f'{STATUS_NAMES[int(st)]} (excitation {e:.3f}, uncertainty {u:.1%})',
+                )
+            )
+        return out
+
+    def _publish(self, vehicle: str) -> None:
+        engine = self.engines[vehicle]
+        estimates = engine.advance()
+        if not estimates:
+            return
+        self._last_estimate[vehicle] = estimates[-1]
+        for est in estimates:
+            if est.prediction_note:
+                self._last_prediction_note[vehicle] = est.prediction_note
+        encoder = self.encoders[vehicle]
+        frame, child = engine.world_frame or '', engine.child_frame
+        for est in estimates:
+            for topic, _, data in encoder.encode(est, frame, child):
+                self.publishers_[topic].publish(data)
+
+    def _reset_service(self, request, response):
+        for v, engine in self.engines.items():
+            engine.reset()
+            self.encoders[v].reset()
+        response.success = True
+        response.message = f'reset {len(self.engines)} vehicle(s): model forgotten'
+        self.get_logger().info(response.message)
+        return response
+
+    # ------------------------------------------------------------------------ diagnostics
+
+    def vehicle_status(self, vehicle: str, steps_per_s: float) -> Status:
+        engine = self.engines[vehicle]
+        s = engine.stats
+        rejected = sum(s.rejected.values()) + self.malformed[vehicle]
+        if not engine.started:
+            level, message = messages.WARN, 'waiting for odom and reference'
+        elif not (s.last_error_norm == s.last_error_norm):  # NaN
+            level, message = messages.ERROR, 'estimate is not finite'
+        elif rejected:
+            level, message = messages.WARN, f'running; {rejected} input(s) rejected'
+        else:
+            level, message = messages.OK, 'running'
+        note = self._last_prediction_note.get(vehicle, '')
+        if engine.started and note and not note.startswith('identified'):
+            message += f'; prediction {note}'
+        values = [
+            ('algorithm', engine.config.estimator.algorithm),
+            *self._identification_values(vehicle),
+            ('rate_hz', f'{engine.config.rate:g}'),
+            ('steps_per_s', f'{steps_per_s:.1f}'),
+            ('steps', str(s.steps)),
+            ('odom_received', str(s.odom_received)),
+            ('odom_accepted', str(s.odom_accepted)),
+            ('reference_received', str(s.reference_received)),
+            ('reference_accepted', str(s.reference_accepted)),
+            ('rejected', str(rejected)),
+            ('malformed', str(self.malformed[vehicle])),
+            *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
+            ('time_jumps', str(s.time_jumps)),
+            ('resets', str(s.resets)),
+            ('error_norm', f'{s.last_error_norm:.6g}'),
+            ('last_stamp', '' if s.last_stamp_ns is None else f'{s.last_stamp_ns / NS:.3f}'),
+            ('predictions', str(s.predictions)),
+            ('predictions_withheld', str(s.predictions_withheld)),
+            ('plans_accepted', str(s.plans_accepted)),
+        ]
+        return Status(level, f'cloe_inference: {vehicle or "/"}', message, vehicle or '/',
+                      tuple(values))  # fmt: skip
+
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        t_prev, steps_prev = self._last_diag
+        dt = max(now - t_prev, 1e-9)
+        statuses = []
+        for v, engine in self.engines.items():
+            statuses.append(
+                self.vehicle_status(v, (engine.stats.steps - steps_prev.get(v, 0)) / dt)
+            )
+        self._last_diag = (now, {v: e.stats.steps for v, e in self.engines.items()})
+        stamp = self.get_clock().now().nanoseconds
+        self.diagnostics_pub.publish(encode_diagnostics(stamp, statuses))
+
+
+def main(args=None) -> int:
+    return run_node(InferenceNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

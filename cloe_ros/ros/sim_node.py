@@ -1,0 +1,324 @@
+"""``quadrotor_sim``: the nonlinear quadrotor simulator as a node.
+
+Per vehicle namespace ``<ns>`` (none for a single vehicle) it publishes ``<ns>/odom``
+(nav_msgs/Odometry, REP-105: twist in the body frame, covariances from the noise model),
+``<ns>/reference`` (geometry_msgs/PoseStamped: the reference tracked, probing included), and, with
+``publish_truth``, ``<ns>/ground_truth`` (noise-free Odometry) and ``<ns>/true_parameters``
+(Float64MultiArray, transient local: the Theta of the hover linearization, labelled like
+``cloe/parameters``). Stamps are simulation time from an origin taken at start; with
+``publish_clock`` the same time goes to ``/clock`` so other nodes can run with ``use_sim_time``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Float64MultiArray
+
+from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
+from cloe_ros.core.model import PARAMETER_NAMES
+from cloe_ros.core.samples import OdometrySample, PoseSample
+from cloe_ros.core.simulator import (
+    NO_PROBING,
+    SCENARIOS,
+    ControllerGains,
+    MeasurementNoise,
+    NoDisturbance,
+    PaperDisturbance,
+    ProbingSignal,
+    QuadrotorParams,
+    QuadrotorSimulator,
+    true_parameters,
+)
+from cloe_ros.io.messages import (
+    encode_clock,
+    encode_float64_multi_array,
+    encode_odometry,
+    encode_pose_stamped,
+)
+from cloe_ros.ros.common import (
+    NS,
+    STRING_ARRAY,
+    ParameterError,
+    accept,
+    check_vehicles,
+    declare,
+    describe,
+    qos,
+    refuse,
+    run_node,
+    vehicle_topic,
+)
+
+GAIN_NAMES = tuple(ControllerGains.__dataclass_fields__)
+
+
+class SimulatorNode(Node):
+    """The simulator node; see the module docstring and the README for its interface."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('quadrotor_sim', **kwargs)
+        values = self._declare_parameters()
+        get = values.__getitem__
+        scenario = SCENARIOS[get('scenario')]
+        self.vehicles = check_vehicles(get('vehicles') or []) or ['']
+        n = len(self.vehicles)
+        offsets = np.zeros((n, 3))
+        offsets[:, 1] = get('spacing') * np.arange(n)
+        quad = QuadrotorParams(mass=get('mass'), inertia=tuple(get('inertia')))
+        gains = ControllerGains(**{g: get(f'controller.{g}') for g in GAIN_NAMES})
+        self.noise = MeasurementNoise(
+            get('noise_position'), get('noise_velocity'), get('noise_angle'), get('noise_rate')
+        )
+        probing = ProbingSignal().scaled(get('probing_scale')) if get('probing') else NO_PROBING
+        self.sim = QuadrotorSimulator(
+            scenario,
+            n_vehicles=n,
+            quad=quad,
+            gains=gains,
+            disturbance=PaperDisturbance() if get('disturbance') else NoDisturbance(),
+            probing=probing,
+            noise=self.noise,
+            dt=1.0 / get('sim_rate'),
+            offsets=offsets,
+            rng=np.random.default_rng(get('seed')),
+        )
+        self.duration = get('duration') or scenario.duration
+        self.rtf = get('real_time_factor')
+        self.world_frame, self.body_frame = get('world_frame'), get('body_frame')
+        sim_rate = get('sim_rate')
+        self.odom_every = self._divisor(sim_rate, get('odom_rate'), 'odom_rate')
+        self.ref_every = self._divisor(sim_rate, get('reference_rate'), 'reference_rate')
+        self.publish_clock = get('publish_clock')
+        self.publish_truth = get('publish_truth')
+        self.shutdown_when_done = get('shutdown_when_done')
+        self.wait_for_subscribers = get('wait_for_subscribers')
+        self.wait_timeout = get('wait_timeout')
+
+        depth = get('qos_depth')
+        self.pubs = {}
+        for v in self.vehicles:
+            self.pubs[(v, 'odom')] = self.create_publisher(
+                Odometry, vehicle_topic(v, 'odom'), qos(depth=depth)
+            )
+            self.pubs[(v, 'reference')] = self.create_publisher(
+                PoseStamped, vehicle_topic(v, 'reference'), qos(depth=depth)
+            )
+            if self.publish_truth:
+                self.pubs[(v, 'ground_truth')] = self.create_publisher(
+                    Odometry, vehicle_topic(v, 'ground_truth'), qos(depth=depth)
+                )
+                self.pubs[(v, 'true_parameters')] = self.create_publisher(
+                    Float64MultiArray, vehicle_topic(v, 'true_parameters'),
+                    qos(depth=1, transient_local=True),
+                )  # fmt: skip
+        self.clock_pub = (
+            self.create_publisher(Clock, '/clock', qos(depth=10)) if self.publish_clock else None
+        )
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.theta_true = true_parameters(quad, gains)
+        self.origin_ns: int | None = None
+        self.wall_start: float | None = None
+        self._wait_start = time.monotonic()
+        self._step = 0
+        self.done = False
+        period = 1.0 / get('odom_rate') if self.rtf > 0 else 0.001
+        self.timer = self.create_timer(period, self._tick)
+        self.get_logger().info(
+            f'simulating {scenario.name} for {self.duration:g} s, {n} vehicle(s), '
+            f'real-time factor {self.rtf:g}'
+        )
+
+    def _declare_parameters(self) -> dict:
+        ro = {'read_only': True}
+        defaults = ControllerGains()
+        p = [
+            ('scenario', 'position', describe(
+                'scenario: ' + ' | '.join(SCENARIOS), **ro,
+                additional_constraints='one of ' + ', '.join(SCENARIOS))),
+            ('vehicles', [], describe(
+                'vehicle namespaces, e.g. [/uav1, /uav2]; empty: one vehicle, no namespace',
+                parameter_type=STRING_ARRAY, **ro)),
+            ('spacing', 2.0, describe('y offset between vehicles, m', float_range=(0.0, 100.0),
+                                      **ro)),
+            ('duration', 0.0, describe(
+                'simulated time, s; 0: the scenario length', float_range=(0.0, 1e6), **ro)),
+            ('real_time_factor', 1.0, describe(
+                'simulated seconds per wall-clock second; 0: as fast as possible',
+                float_range=(0.0, 100.0))),
+            ('sim_rate', 1000.0, describe('integration rate (RK4), Hz',
+                                          float_range=(100.0, 10000.0), **ro)),
+            ('odom_rate', 100.0, describe('odom rate, Hz (must divide sim_rate)',
+                                          float_range=(1.0, 1000.0), **ro)),
+            ('reference_rate', 50.0, describe('reference rate, Hz (must divide sim_rate)',
+                                              float_range=(1.0, 1000.0), **ro)),
+            ('publish_clock', False, describe('publish /clock with the simulation time', **ro)),
+            ('publish_truth', True, describe(
+                'publish ground_truth and true_parameters per vehicle', **ro)),
+            ('disturbance', True, describe('the paper §6.1 disturbances', **ro)),
+            ('probing', True, describe('add the probing signal to the reference', **ro)),
+            ('probing_scale', 1.0, describe('probing amplitude factor',
+                                            float_range=(0.0, 10.0), **ro)),
+            ('noise_position', 0.0, describe('odom position noise sigma, m',
+                                             float_range=(0.0, 10.0), **ro)),
+            ('noise_velocity', 0.0, describe('odom velocity noise sigma, m/s',
+                                             float_range=(0.0, 10.0), **ro)),
+            ('noise_angle', 0.0, describe('odom attitude noise sigma, rad',
+                                          float_range=(0.0, 1.0), **ro)),
+            ('noise_rate', 0.0, describe('odom body-rate noise sigma, rad/s',
+                                         float_range=(0.0, 10.0), **ro)),
+            ('seed', 0, describe('noise random seed', int_range=(0, 2**31 - 1), **ro)),
+            ('mass', 0.52, describe('vehicle mass, kg', float_range=(0.01, 100.0), **ro)),
+            ('inertia', [0.01, 0.01, 0.02], describe(
+                'Jx, Jy, Jz, kg m^2', additional_constraints='3 values > 0', **ro)),
+            ('world_frame', 'world', describe('header.frame_id of odom and reference', **ro)),
+            ('body_frame', 'base_link', describe('child_frame_id of odom', **ro)),
+            ('wait_for_subscribers', 0, describe(
+                'wait until every odom topic has this many subscribers before starting',
+                int_range=(0, 100), **ro)),
+            ('wait_timeout', 30.0, describe('then start anyway after this many s',
+                                            float_range=(0.0, 3600.0), **ro)),
+            ('shutdown_when_done', False, describe('exit when the duration is over', **ro)),
+            ('qos_depth', 100, describe('QoS history depth', int_range=(1, 10000), **ro)),
+        ] + [
+            (f'controller.{g}', float(getattr(defaults, g)), describe(
+                f'controller gain {g} (see docs/method.md)', float_range=(0.0, 1e5), **ro))
+            for g in GAIN_NAMES
+        ]  # fmt: skip
+        values = {name: declare(self, name, default, d) for name, default, d in p}
+        if values['scenario'] not in SCENARIOS:
+            raise ParameterError(
+                f"parameter 'scenario': {values['scenario']!r} is not one of "
+                + ', '.join(SCENARIOS)
+            )
+        inertia = values['inertia']
+        if len(inertia) != 3 or min(inertia) <= 0:
+            raise ParameterError(f"parameter 'inertia' needs 3 values > 0, got {list(inertia)}")
+        return values
+
+    def _on_set_parameters(self, params):
+        for p in params:
+            if p.name == 'real_time_factor' and (p.value > 0) != (self.rtf > 0):
+                return refuse('real_time_factor cannot switch between 0 and > 0 while running')
+        for p in params:
+            if p.name == 'real_time_factor':
+                if self.wall_start is not None:  # keep the simulated time continuous
+                    elapsed = time.monotonic() - self.wall_start
+                    self.wall_start = time.monotonic() - elapsed * self.rtf / max(p.value, 1e-9)
+                self.rtf = p.value
+        return accept()
+
+    @staticmethod
+    def _divisor(sim_rate: float, rate: float, name: str) -> int:
+        every = sim_rate / rate
+        if abs(every - round(every)) > 1e-9 or round(every) < 1:
+            raise ParameterError(
+                f'parameter {name!r}: {rate:g} Hz does not divide sim_rate {sim_rate:g} Hz'
+            )
+        return round(every)
+
+    # --------------------------------------------------------------------------- running
+
+    def _ready(self) -> bool:
+        if self.wait_for_subscribers <= 0:
+            return True
+        counts = [self.pubs[(v, 'odom')].get_subscription_count() for v in self.vehicles]
+        if min(counts) >= self.wait_for_subscribers:
+            return True
+        if time.monotonic() - self._wait_start > self.wait_timeout:
+            self.get_logger().warning(
+                f'starting with {min(counts)} subscriber(s) after {self.wait_timeout:g} s'
+            )
+            return True
+        return False
+
+    def _tick(self) -> None:
+        if self.done:
+            return
+        if self.origin_ns is None:
+            if not self._ready():
+                return
+            self.origin_ns = self.get_clock().now().nanoseconds
+            self.wall_start = time.monotonic()
+            if self.publish_truth:
+                for v in self.vehicles:
+                    labels = [f'theta.{n}' for n in PARAMETER_NAMES]
+                    self.pubs[(v, 'true_parameters')].publish(
+                        encode_float64_multi_array(labels, self.theta_true)
+                    )
+            self._publish_samples()
+            self.get_logger().info('started')
+        if self.rtf > 0:
+            target = (time.monotonic() - self.wall_start) * self.rtf
+        else:
+            target = self.sim.t + 0.05
+        target = min(target, self.duration)
+        while self.sim.t + 0.5 * self.sim.dt < target:
+            self.sim.step()
+            self._step += 1
+            self._publish_samples()
+        if self.sim.t + 0.5 * self.sim.dt >= self.duration:
+            self.done = True
+            self.get_logger().info(f'done: {self.duration:g} s simulated')
+            if self.shutdown_when_done:
+                self.context.try_shutdown()
+
+    def _publish_samples(self) -> None:
+        k = self._step
+        send_odom, send_ref = k % self.odom_every == 0, k % self.ref_every == 0
+        if not (send_odom or send_ref):
+            return
+        stamp = self.origin_ns + round(self.sim.t * NS)
+        if self.clock_pub is not None and send_odom:
+            self.clock_pub.publish(encode_clock(stamp))
+        if send_odom:
+            truth = self.sim.zeta
+            measured = self.sim.add_noise(truth)
+            for i, v in enumerate(self.vehicles):
+                self.pubs[(v, 'odom')].publish(self._odometry(stamp, measured[i], noisy=True))
+                if self.publish_truth:
+                    self.pubs[(v, 'ground_truth')].publish(
+                        self._odometry(stamp, truth[i], noisy=False)
+                    )
+        if send_ref:
+            ref = self.sim.reference(self.sim.t)
+            for i, v in enumerate(self.vehicles):
+                r = ref[i]
+                sample = PoseSample(
+                    stamp, self.world_frame, np.array([r[0], r[1], r[3]]), yaw_quaternion(r[2])
+                )
+                self.pubs[(v, 'reference')].publish(encode_pose_stamped(sample))
+
+    def _odometry(self, stamp: int, zeta: np.ndarray, noisy: bool) -> bytes:
+        position, quaternion, v_body, w_body = state_to_odometry(zeta)
+        pose_cov = twist_cov = None
+        if noisy and self.noise.enabled:
+            n = self.noise
+            pose_cov = np.diag([n.position**2] * 3 + [n.angle**2] * 3).ravel()
+            twist_cov = np.diag([n.velocity**2] * 3 + [n.rate**2] * 3).ravel()
+        return encode_odometry(
+            OdometrySample(
+                stamp,
+                self.world_frame,
+                self.body_frame,
+                position,
+                quaternion,
+                v_body,
+                w_body,
+                pose_cov,
+                twist_cov,
+            )
+        )
+
+
+def main(args=None) -> int:
+    return run_node(SimulatorNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,157 @@
+"""Bags of simulated flights for tests, written without ROS, as the ``quadrotor_sim`` node would.
+
+:func:`write_sim_bag` simulates a scenario with :class:`QuadrotorSimulator` and writes the samples
+as a rosbag2/MCAP bag in the layout of DESIGN §6: ``<ns>/odom`` (noisy), ``<ns>/reference``,
+``<ns>/ground_truth`` (noise-free) and ``<ns>/true_parameters`` (labels ``theta.<name>``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
+from cloe_ros.core.model import PARAMETER_NAMES
+from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
+from cloe_ros.core.simulator import (
+    SCENARIOS,
+    TYPICAL_NOISE,
+    PaperDisturbance,
+    QuadrotorSimulator,
+    SimulationResult,
+)
+from cloe_ros.io import messages
+from cloe_ros.io.reader import BagReader
+from cloe_ros.io.writer import BagWriter
+
+NS = 1_000_000_000
+#: Stamp of the simulation's t = 0 (an arbitrary wall-clock-like epoch).
+ORIGIN_NS = 1_700_000_000 * NS
+
+
+def simulate(
+    duration: float = 15.0, scenario: str = 'position', seed: int = 0
+) -> SimulationResult:
+    """The scenario with the paper's disturbances and Vicon-like noise, 2 ms RK4 steps."""
+    sim = QuadrotorSimulator(
+        SCENARIOS[scenario],
+        disturbance=PaperDisturbance(),
+        noise=TYPICAL_NOISE,
+        dt=2e-3,
+        rng=np.random.default_rng(seed),
+    )
+    return sim.run(duration)
+
+
+def _odometry(stamp: int, zeta: np.ndarray) -> bytes:
+    position, quaternion, v_body, w_body = state_to_odometry(zeta)
+    return messages.encode_odometry(
+        OdometrySample(stamp, 'world', 'base_link', position, quaternion, v_body, w_body)
+    )
+
+
+def stamps(result: SimulationResult) -> np.ndarray:
+    """Header stamps (ns) of the simulation's samples."""
+    return ORIGIN_NS + np.round(result.t * NS).astype(np.int64)
+
+
+def write_sim_bag(
+    path: Path,
+    result: SimulationResult | None = None,
+    namespaces: Sequence[str] = ('',),
+    odom_rate: float = 100.0,
+    ref_rate: float = 50.0,
+    truth: bool = True,
+) -> Path:
+    """Write ``result`` (a 15 s position-control flight by default) as a bag at ``path``, the
+    i-th vehicle of the simulation under ``namespaces[i]`` (the first one for all when the
+    simulation has a single vehicle)."""
+    result = simulate() if result is None else result
+    dt = float(result.t[1] - result.t[0])
+    odom_every = max(1, round(1.0 / (odom_rate * dt)))
+    ref_every = max(1, round(1.0 / (ref_rate * dt)))
+    t_ns = stamps(result)
+    labels = [f'theta.{n}' for n in PARAMETER_NAMES]
+    with BagWriter(path) as writer:
+        for ns in namespaces:
+            writer.add_topic(f'{ns}/odom', messages.ODOMETRY)
+            writer.add_topic(f'{ns}/reference', messages.POSE_STAMPED)
+            if truth:
+                writer.add_topic(f'{ns}/ground_truth', messages.ODOMETRY)
+                writer.add_topic(f'{ns}/true_parameters', messages.FLOAT64_MULTI_ARRAY)
+                writer.write(
+                    f'{ns}/true_parameters',
+                    int(t_ns[0]),
+                    messages.encode_float64_multi_array(labels, result.theta_true),
+                )
+        for k, stamp in enumerate(t_ns):
+            stamp = int(stamp)
+            for i, ns in enumerate(namespaces):
+                v = min(i, result.zeta.shape[1] - 1)
+                if k % odom_every == 0:
+                    writer.write(f'{ns}/odom', stamp, _odometry(stamp, result.measured[k, v]))
+                    if truth:
+                        writer.write(
+                            f'{ns}/ground_truth', stamp, _odometry(stamp, result.zeta[k, v])
+                        )
+                if k % ref_every == 0:
+                    r = result.reference[k, v]
+                    pose = PoseSample(
+                        stamp, 'world', np.array([r[0], r[1], r[3]]), yaw_quaternion(r[2])
+                    )
+                    writer.write(f'{ns}/reference', stamp, messages.encode_pose_stamped(pose))
+    return path
+
+
+def oracle_predictions(
+    result: SimulationResult, every_s: float = 0.5, step_s: float = 0.1, horizon_s: float = 5.0
+) -> list[tuple[int, bytes]]:
+    """``nav_msgs/Path`` messages (log time, CDR) predicting the true future positions exactly:
+    issued every ``every_s``, poses every ``step_s`` up to ``horizon_s`` (cut at the end)."""
+    t_ns = stamps(result)
+    position = result.zeta[:, 0][:, [0, 4, 10]]
+    dt = float(result.t[1] - result.t[0])
+    out = []
+    for i in range(0, len(t_ns), max(1, round(every_s / dt))):
+        ks = i + np.arange(0, round(horizon_s / dt) + 1, max(1, round(step_s / dt)))
+        ks = ks[ks < len(t_ns)]
+        path = PathSample(
+            int(t_ns[i]),
+            'world',
+            t_ns[ks],
+            position[ks],
+            np.tile([0.0, 0.0, 0.0, 1.0], (len(ks), 1)),
+        )
+        out.append((int(t_ns[i]), messages.encode_path(path)))
+    return out
+
+
+def copy_bag(
+    source: Path, target: Path, extra: Iterable[tuple[str, str, list[tuple[int, bytes]]]] = ()
+) -> Path:
+    """Copy every message of ``source`` into a new bag ``target``, adding ``extra`` topics given as
+    ``(name, msgtype, [(log_time_ns, cdr), ...])``."""
+    records: list[tuple[int, str, bytes]] = []
+    with BagReader(source) as reader, BagWriter(target) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        for name, msgtype, msgs in extra:
+            writer.add_topic(name, msgtype)
+            records += [(t, name, raw) for t, raw in msgs]
+        records += [(t, topic, bytes(raw)) for topic, t, raw in reader.messages()]
+        for t, topic, raw in sorted(records, key=lambda r: r[0]):
+            writer.write(topic, t, raw)
+    return target
+
+
+def read_topics(bag: Path, names: Iterable[str]) -> list[tuple[str, str, list[tuple[int, bytes]]]]:
+    """``(name, msgtype, [(log_time_ns, cdr), ...])`` of the named topics of ``bag``, for
+    :func:`copy_bag`'s ``extra``."""
+    with BagReader(bag) as reader:
+        wanted = [n for n in names if n in reader.topics]
+        msgs: dict[str, list[tuple[int, bytes]]] = {n: [] for n in wanted}
+        for topic, t, raw in reader.messages(wanted):
+            msgs[topic].append((t, bytes(raw)))
+        return [(n, reader.topics[n].msgtype, msgs[n]) for n in wanted]

@@ -1,0 +1,247 @@
+"""The fixed-step engine: timing on message stamps, rejection of bad input, time jumps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
+from cloe_ros.core.estimator import CloeEstimator, ConfigError, EstimatorConfig
+from cloe_ros.core.kinematics import state_to_odometry, wrap_angle, yaw_quaternion
+from cloe_ros.core.samples import OdometrySample, PoseSample
+from cloe_ros.core.simulator import QuadrotorSimulator, get_scenario
+
+T0 = 1_700_000_000 * NS  # an epoch-like start, as on real recordings
+
+
+def odom(stamp_ns, zeta, frame='world'):
+    p, q, v, w = state_to_odometry(zeta)
+    return OdometrySample(stamp_ns, frame, 'base_link', p, q, v, w)
+
+
+def ref(stamp_ns, r, frame='world'):
+    return PoseSample(stamp_ns, frame, np.array([r[0], r[1], r[3]]), yaw_quaternion(r[2]))
+
+
+@pytest.fixture(scope='module')
+def flight():
+    """20 s of the position scenario sampled at 100 Hz (odometry) and 50 Hz (reference)."""
+    sim = QuadrotorSimulator(get_scenario('position'), dt=1e-3)
+    res = sim.run(20.0)
+    return res.t[::10], res.zeta[::10, 0], res.reference[::10, 0]
+
+
+def messages(flight, odom_every=1, ref_every=2):
+    t, zeta, r = flight
+    odoms = [(T0 + round(t[k] * NS), odom(T0 + round(t[k] * NS), zeta[k]))
+             for k in range(0, len(t), odom_every)]  # fmt: skip
+    refs = [(T0 + round(t[k] * NS), ref(T0 + round(t[k] * NS), r[k]))
+            for k in range(0, len(t), ref_every)]  # fmt: skip
+    return odoms, refs
+
+
+def run(engine, sequence):
+    out = []
+    for kind, sample in sequence:
+        reason = (engine.add_odometry if kind == 'odom' else engine.add_reference)(sample)
+        assert reason is None, reason
+        out.extend(engine.advance())
+    return out
+
+
+def in_time_order(odoms, refs):
+    seq = [(s, 0, 'odom', m) for s, m in odoms] + [(s, 1, 'ref', m) for s, m in refs]
+    return [(kind, m) for _, _, kind, m in sorted(seq, key=lambda x: (x[0], x[1]))]
+
+
+def test_steps_on_the_grid_of_message_time(flight):
+    odoms, refs = messages(flight)
+    engine = VehicleEngine(EngineConfig(rate=100.0))
+    out = run(engine, in_time_order(odoms, refs)) + engine.finish()
+    stamps = np.array([e.stamp_ns for e in out])
+    assert np.all(np.diff(stamps) == NS // 100)
+    assert stamps[0] == T0 and stamps[-1] == odoms[-1][0]
+    assert len(out) == len(odoms)
+    assert engine.stats.steps == len(out)
+    # a 100 Hz CLOE-SM follows the measurements closely after the first seconds
+    err = np.array([np.linalg.norm(e.error) for e in out if e.stamp_ns > T0 + 5 * NS])
+    assert np.max(err) < 0.05
+
+
+def test_result_does_not_depend_on_how_the_topics_interleave(flight):
+    odoms, refs = messages(flight)
+    base = VehicleEngine(EngineConfig())
+    expected = run(base, in_time_order(odoms, refs)) + base.finish()
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        # merge the two ordered streams at random: each topic stays in order
+        i = j = 0
+        seq = []
+        while i < len(odoms) or j < len(refs):
+            if j >= len(refs) or (i < len(odoms) and rng.random() < 0.6):
+                seq.append(('odom', odoms[i][1]))
+                i += 1
+            else:
+                seq.append(('ref', refs[j][1]))
+                j += 1
+        engine = VehicleEngine(EngineConfig())
+        got = run(engine, seq) + engine.finish()
+        assert [e.stamp_ns for e in got] == [e.stamp_ns for e in expected]
+        np.testing.assert_array_equal(
+            np.array([e.zeta_hat for e in got]), np.array([e.zeta_hat for e in expected])
+        )
+
+
+def test_engine_equals_the_core_estimator_on_grid_samples(flight):
+    """Odometry exactly on the grid: the engine runs the same steps as CloeEstimator with
+    zeta(t_k+1) and the reference of t_k. (CLOE: the sign terms of CLOE-SM would turn the
+    round-off of the odometry conversions into O(h alpha) differences.)"""
+    t, zeta, r = flight
+    odoms, refs = messages(flight, ref_every=1)
+    cfg = EstimatorConfig('cloe', l_initial=0.0)
+    engine = VehicleEngine(EngineConfig(rate=100.0, estimator=cfg))
+    out = run(engine, in_time_order(odoms, refs)) + engine.finish()
+    est = CloeEstimator(cfg, zeta[0])
+    for k in range(1, len(t)):
+        est.step(zeta[k][None], r[k][None], 0.01)
+    np.testing.assert_allclose(out[-1].zeta_hat, est.zeta_hat[0], rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(out[-1].theta_hat, est.theta_hat[0], rtol=1e-9, atol=1e-11)
+
+
+def _bad_messages(odoms):
+    """Bad samples and where to insert them (after the odometry message with that index)."""
+    s, good = odoms[300]
+    nan = OdometrySample(s + NS // 200, 'world', 'base_link', np.array([np.nan, 0, 0]),
+                         good.orientation, good.linear, good.angular)  # fmt: skip
+    zero_q = OdometrySample(s + NS // 200, 'world', 'base_link', good.position,
+                            np.zeros(4), good.linear, good.angular)  # fmt: skip
+    frame = OdometrySample(s + NS // 200, 'map', 'base_link', good.position,
+                           good.orientation, good.linear, good.angular)  # fmt: skip
+    return [
+        (300, 'odom', nan, 'non-finite odometry'),
+        (300, 'odom', zero_q, 'invalid quaternion'),
+        (300, 'odom', frame, 'wrong frame'),
+        (300, 'odom', good, 'duplicate stamp'),
+        (301, 'odom', odoms[299][1], 'out-of-order stamp'),
+        (400, 'ref', PoseSample(odoms[400][0], 'world', np.array([np.inf, 0, 1]),
+                                np.array([0, 0, 0, 1.0])), 'non-finite reference'),
+        (400, 'ref', PoseSample(odoms[400][0], 'map', np.zeros(3), np.array([0, 0, 0, 1.0])),
+         'wrong reference frame'),
+    ]  # fmt: skip
+
+
+def test_bad_input_is_rejected_counted_and_never_reaches_the_estimator(flight):
+    odoms, refs = messages(flight, ref_every=1)
+    clean = VehicleEngine(EngineConfig())
+    expected = run(clean, in_time_order(odoms, refs)) + clean.finish()
+
+    engine = VehicleEngine(EngineConfig())
+    bad = _bad_messages(odoms)
+    got = []
+    for kind, sample in in_time_order(odoms, refs):
+        add = engine.add_odometry if kind == 'odom' else engine.add_reference
+        assert add(sample) is None
+        got.extend(engine.advance())
+        if kind != 'odom':
+            continue
+        index = next(i for i, (s, _) in enumerate(odoms) if s == sample.stamp_ns)
+        for where, bad_kind, bad_sample, reason in bad:
+            if where == index:
+                add = engine.add_odometry if bad_kind == 'odom' else engine.add_reference
+                assert add(bad_sample) == reason
+    got.extend(engine.finish())
+    assert dict(engine.stats.rejected) == {reason: 1 for *_, reason in bad}
+    np.testing.assert_array_equal(
+        np.array([e.zeta_hat for e in got]), np.array([e.zeta_hat for e in expected])
+    )
+
+
+def test_forward_time_jump_restarts_the_estimator_and_keeps_the_model(flight):
+    odoms, refs = messages(flight)
+    gap = 3 * NS
+    shifted = [(s + gap, OdometrySample(s + gap, *[getattr(m, f) for f in (
+        'frame_id', 'child_frame_id', 'position', 'orientation', 'linear', 'angular')]))
+        for s, m in odoms[1000:]]  # fmt: skip
+    shifted_refs = [(s + gap, PoseSample(s + gap, m.frame_id, m.position, m.orientation))
+                    for s, m in refs if s >= odoms[1000][0]]  # fmt: skip
+    first = [(s, m) for s, m in refs if s < odoms[1000][0]]
+    engine = VehicleEngine(EngineConfig(max_gap=1.0))
+    out = run(engine, in_time_order(odoms[:1000] + shifted, first + shifted_refs))
+    out += engine.finish()
+    stamps = np.array([e.stamp_ns for e in out])
+    assert engine.stats.time_jumps == 1
+    jump = np.flatnonzero(np.diff(stamps) > NS // 100)
+    assert len(jump) == 1 and stamps[jump[0] + 1] - stamps[jump[0]] == gap + NS // 100
+    before, after = out[jump[0]], out[jump[0] + 1]
+    np.testing.assert_array_equal(after.zeta_hat, after.measured)  # re-initialised on the data
+    np.testing.assert_array_equal(after.theta_hat, before.theta_hat)  # model kept
+
+
+def test_backward_time_jump_starts_a_new_timeline(flight):
+    odoms, refs = messages(flight)
+    engine = VehicleEngine(EngineConfig())
+    out = run(engine, in_time_order(odoms[:1500], refs[:750]))
+    # the source restarts from the beginning (e.g. a simulation restarted with its /clock)
+    out2 = run(engine, in_time_order(odoms[:300], refs[:150]))
+    assert engine.stats.time_jumps == 1
+    assert out2 and out2[-1].stamp_ns < out[-1].stamp_ns
+    assert not engine.stats.rejected
+
+
+def test_stopped_reference_is_held_after_the_timeout(flight):
+    odoms, refs = messages(flight)
+    engine = VehicleEngine(EngineConfig(reference_timeout=0.25))
+    out = run(engine, in_time_order(odoms, refs[:200]))  # reference stops at 4 s
+    last_ref = refs[199][0]
+    # steps went on past the last reference, lagging the odometry by at most the timeout
+    assert out[-1].stamp_ns >= odoms[-1][0] - round(0.25 * NS) - NS // 100
+    assert out[-1].stamp_ns > last_ref + 10 * NS
+    out += engine.finish()
+    assert out[-1].stamp_ns == odoms[-1][0]
+
+
+def test_yaw_is_unwrapped_across_pi():
+    """A vehicle yawing steadily through +-pi: measured and estimated yaw stay continuous."""
+    engine = VehicleEngine(EngineConfig(estimator=EstimatorConfig('cloe_sm')))
+    out = []
+    for k in range(600):
+        t = k * NS // 100
+        yaw = 3.0 + 0.5 * k / 100  # crosses pi at t = 0.28 s and goes on to 6 rad
+        zeta = np.zeros(12)
+        zeta[[8, 9, 10]] = wrap_angle(yaw), 0.5, 1.0
+        assert engine.add_odometry(odom(T0 + t, zeta)) is None
+        r = np.array([0, 0, wrap_angle(yaw), 1.0])
+        assert engine.add_reference(ref(T0 + t, r)) is None
+        out.extend(engine.advance())
+    yaw_hat = np.array([e.zeta_hat[8] for e in out])
+    assert np.max(np.abs(np.diff(yaw_hat))) < 0.1
+    assert yaw_hat[-1] == pytest.approx(3.0 + 0.5 * 5.99, abs=0.05)
+    assert np.max(np.abs([e.reference[2] - e.measured[8] for e in out])) < 0.01
+
+
+def test_reset_forgets_the_model_and_reinitialises(flight):
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)
+    engine = VehicleEngine(EngineConfig())
+    out = run(engine, seq[:1200])
+    assert np.any(out[-1].theta_hat != 0)
+    engine.reset()
+    after = run(engine, seq[1200:])
+    assert engine.stats.resets == 1
+    np.testing.assert_array_equal(after[0].theta_hat, np.zeros(16))
+    np.testing.assert_array_equal(after[0].zeta_hat, after[0].measured)
+    assert after[0].stamp_ns == out[-1].stamp_ns + NS // 100
+
+
+@pytest.mark.parametrize(
+    'kwargs, message',
+    [
+        ({'rate': 0.0}, r'rate must be within \[1, 10000\], got 0.0'),
+        ({'rate': float('nan')}, 'rate must be within'),
+        ({'max_gap': -1.0}, 'max_gap must be within'),
+        ({'reference_timeout': 1e9}, 'reference_timeout must be within'),
+    ],
+)
+def test_invalid_engine_config_is_refused(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        EngineConfig(**kwargs)

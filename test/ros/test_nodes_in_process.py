@@ -1,0 +1,267 @@
+"""Simulator and inference nodes spun by rclpy executors in one process, a context per test."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from ros_helpers import spin_until
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from cloe_ros.core.kinematics import state_to_odometry
+from cloe_ros.core.model import PARAMETER_NAMES
+from cloe_ros.core.samples import OdometrySample
+from cloe_ros.core.simulator import true_parameters
+from cloe_ros.io import messages
+from cloe_ros.io.outputs import PARAMETER_LABELS
+from cloe_ros.ros.common import ParameterError
+from cloe_ros.ros.inference_node import InferenceNode
+from cloe_ros.ros.sim_node import SimulatorNode
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def context():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        yield ctx
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+class Collector:
+    """Raw subscriptions that keep every message of some topics."""
+
+    def __init__(self, ctx, topics: dict[str, type]):
+        self.node = rclpy.create_node('collector', context=ctx)
+        self.msgs: dict[str, list[bytes]] = {t: [] for t in topics}
+        for topic, cls in topics.items():
+            self.node.create_subscription(
+                cls, topic, lambda raw, t=topic: self.msgs[t].append(raw), 1000, raw=True
+            )
+
+
+def _executor(ctx, *nodes):
+    ex = SingleThreadedExecutor(context=ctx)
+    for n in nodes:
+        ex.add_node(n)
+    return ex
+
+
+def test_sim_and_inference_infer_the_simulated_state(context):
+    # real time: one executor serves all three nodes, and no queue may overflow (KEEP_LAST 100)
+    sim = SimulatorNode(context=context, parameter_overrides=[
+        Parameter('duration', value=4.0), Parameter('real_time_factor', value=1.0),
+        Parameter('wait_for_subscribers', value=1)])  # fmt: skip
+    inf = InferenceNode(context=context, parameter_overrides=[
+        Parameter('algorithm', value='cloe_sm')])  # fmt: skip
+    col = Collector(context, {
+        'cloe/state': Odometry, 'cloe/parameters': Float64MultiArray, 'ground_truth': Odometry,
+        '/diagnostics': DiagnosticArray, 'true_parameters': Float64MultiArray})  # fmt: skip
+    ex = _executor(context, sim, inf, col.node)
+    try:
+        assert spin_until(ex, lambda: sim.done, timeout=60)
+        spin_until(ex, lambda: False, timeout=0.3)  # drain
+        n_diag = len(col.msgs['/diagnostics'])
+        assert spin_until(ex, lambda: len(col.msgs['/diagnostics']) > n_diag, timeout=5)
+        states = [messages.decode_odometry(r) for r in col.msgs['cloe/state']]
+        truth = {m.stamp_ns: m for m in map(messages.decode_odometry, col.msgs['ground_truth'])}
+        # every step of 4 s at 100 Hz (the last ones may wait for the next odometry)
+        assert len(states) >= 395
+        stamps = np.array([s.stamp_ns for s in states])
+        assert np.all(np.diff(stamps) == 10_000_000)
+        # the inferred position follows the true one (odom is noise-free here)
+        err = [np.linalg.norm(s.position - truth[s.stamp_ns].position) for s in states
+               if s.stamp_ns in truth and s.stamp_ns > stamps[0] + 2_000_000_000]  # fmt: skip
+        assert len(err) > 150 and max(err) < 0.02
+        labels, data = messages.decode_float64_multi_array(col.msgs['cloe/parameters'][-1])
+        assert tuple(labels) == PARAMETER_LABELS and data.shape == (len(PARAMETER_LABELS),)
+        assert labels[27] == 'L.z_dot' and data[28] == pytest.approx(9.81)  # coupling +g
+        # ~10 Hz of message time
+        assert 38 <= len(col.msgs['cloe/parameters']) <= 42
+        tlabels, theta = messages.decode_float64_multi_array(col.msgs['true_parameters'][0])
+        assert tlabels == [f'theta.{n}' for n in PARAMETER_NAMES]
+        np.testing.assert_allclose(theta, true_parameters())
+        _, statuses = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+        (status,) = statuses
+        values = dict(status.values)
+        assert status.name == 'cloe_inference: /' and status.level == messages.OK
+        assert int(values['steps']) == len(states) and values['rejected'] == '0'
+    finally:
+        ex.shutdown()
+        for n in (sim, inf, col.node):
+            n.destroy_node()
+
+
+def _odom_bytes(stamp_ns, zeta, frame='world'):
+    p, q, v, w = state_to_odometry(zeta)
+    return messages.encode_odometry(OdometrySample(stamp_ns, frame, 'base_link', p, q, v, w))
+
+
+def _ref_bytes(stamp_ns, r):
+    return messages.encode_pose_stamped(
+        messages.PoseSample(stamp_ns, 'world', np.array([r[0], r[1], r[3]]),
+                            np.array([0, 0, math.sin(r[2] / 2), math.cos(r[2] / 2)]))
+    )  # fmt: skip
+
+
+def test_bad_inputs_are_rejected_counted_and_reported(context):
+    inf = InferenceNode(
+        context=context,
+        parameter_overrides=[
+            Parameter('vehicles', value=['/uav1']),
+            Parameter('diagnostics_period', value=0.2),
+        ],
+    )
+    pub_node = rclpy.create_node('source', context=context)
+    odom = pub_node.create_publisher(Odometry, '/uav1/odom', 100)
+    ref = pub_node.create_publisher(messages_pose_type(), '/uav1/reference', 100)
+    col = Collector(context, {'/uav1/cloe/state': Odometry, '/diagnostics': DiagnosticArray})
+    ex = _executor(context, inf, pub_node, col.node)
+    try:
+        assert spin_until(ex, lambda: odom.get_subscription_count() >= 1, timeout=10)
+        t0 = 1_000_000_000_000
+        zeta = np.zeros(12)
+        zeta[10] = 1.0
+        r = np.array([0.0, 0.0, 0.0, 1.0])
+        good = 0
+        for k in range(200):
+            stamp = t0 + k * 10_000_000
+            odom.publish(_odom_bytes(stamp, zeta))
+            ref.publish(_ref_bytes(stamp, r))
+            good += 1
+            if k == 50:
+                bad = zeta.copy()
+                bad[0] = math.nan
+                odom.publish(_odom_bytes(stamp + 5_000_000, bad))  # non-finite
+                odom.publish(_odom_bytes(stamp, zeta))  # duplicate stamp
+                odom.publish(_odom_bytes(stamp - 5_000_000, zeta))  # out of order
+                odom.publish(_odom_bytes(stamp + 5_000_000, zeta, frame='map'))  # wrong frame
+                odom.publish(b'\x00\x01\x00\x00garbage')  # malformed CDR
+            spin_until(ex, lambda: False, timeout=0.002)
+
+        def counted():
+            if not col.msgs['/diagnostics']:
+                return False
+            _, (st,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+            return int(dict(st.values)['odom_received']) >= 204
+
+        assert spin_until(ex, counted, timeout=10)
+        spin_until(ex, lambda: False, timeout=0.5)
+        _, (status,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+        values = dict(status.values)
+        assert status.level == messages.WARN and 'rejected' in status.message
+        assert values['rejected: non-finite odometry'] == '1'
+        assert values['rejected: duplicate stamp'] == '1'
+        assert values['rejected: out-of-order stamp'] == '1'
+        assert values['rejected: wrong frame'] == '1'
+        assert values['malformed'] == '1'
+        assert values['odom_accepted'] == str(good)
+        states = [messages.decode_odometry(b) for b in col.msgs['/uav1/cloe/state']]
+        # nothing bad reached the estimator: the hover estimate stays exactly on the data
+        assert len(states) >= 190
+        assert all(np.all(np.isfinite(s.position)) for s in states)
+        assert max(abs(s.position[2] - 1.0) for s in states) < 1e-9
+    finally:
+        ex.shutdown()
+        for n in (inf, pub_node, col.node):
+            n.destroy_node()
+
+
+def messages_pose_type():
+    from geometry_msgs.msg import PoseStamped
+
+    return PoseStamped
+
+
+def test_reset_service_forgets_the_model(context):
+    sim = SimulatorNode(context=context, parameter_overrides=[
+        Parameter('duration', value=6.0), Parameter('real_time_factor', value=0.0),
+        Parameter('wait_for_subscribers', value=1)])  # fmt: skip
+    inf = InferenceNode(context=context, parameter_overrides=[
+        Parameter('algorithm', value='cloe_sm')])  # fmt: skip
+    client_node = rclpy.create_node('client', context=context)
+    client = client_node.create_client(Trigger, '/cloe_inference/reset')
+    col = Collector(context, {'cloe/parameters': Float64MultiArray})
+    ex = _executor(context, sim, inf, client_node, col.node)
+    try:
+        assert spin_until(ex, lambda: len(col.msgs['cloe/parameters']) >= 20, timeout=60)
+        _, before = messages.decode_float64_multi_array(col.msgs['cloe/parameters'][-1])
+        assert np.any(before[:16] != 0)
+        assert client.wait_for_service(timeout_sec=5)
+        future = client.call_async(Trigger.Request())
+        assert spin_until(ex, future.done, timeout=5)
+        assert future.result().success and 'reset 1 vehicle' in future.result().message
+        n = len(col.msgs['cloe/parameters'])
+        assert spin_until(ex, lambda: len(col.msgs['cloe/parameters']) > n + 5, timeout=10)
+        after = [messages.decode_float64_multi_array(m)[1] for m in col.msgs['cloe/parameters']]
+        # the first estimate after the reset is published at once, with the model at zero
+        # (index 0 is the very first estimate, which also starts from zero)
+        restarted = [k for k, d in enumerate(after) if k > 0 and not np.any(d[:16])]
+        assert len(restarted) == 1 and restarted[0] >= n - 5  # some were in flight
+        assert inf.engines[''].stats.resets == 1
+    finally:
+        ex.shutdown()
+        for n in (sim, inf, client_node, col.node):
+            n.destroy_node()
+
+
+@pytest.mark.parametrize(
+    'name, value, reason',
+    [
+        ('rate', 0.5, 'Parameter rate out of range'),
+        ('rate', 'fast', "expecting type 'DOUBLE'"),
+        ('algorithm', 'kalman', "'kalman' is not one of cloe, cloe_sm"),
+        ('gamma_theta', -1.0, 'Parameter gamma_theta out of range'),
+        ('sm_exponents', [1.5] * 12, r'sm_exponents must lie in [0, 1)'),
+        ('sm_gains', [0.1] * 3, 'need 12 entries'),
+        ('vehicles', ['/a b'], "vehicle namespace '/a b' is not valid"),
+        ('qos_reliability', 'sometimes', 'must be reliable or best_effort'),
+    ],
+)
+def test_invalid_startup_parameters_are_refused_with_a_reason(context, name, value, reason):
+    with pytest.raises(ParameterError) as info:
+        InferenceNode(context=context, parameter_overrides=[Parameter(name, value=value)])
+    assert reason in str(info.value)
+
+
+def test_invalid_runtime_parameters_are_refused_with_a_reason(context):
+    inf = InferenceNode(context=context)
+    try:
+        cases = [
+            (Parameter('rate', value=5000.0), 'out of range'),
+            (Parameter('rate', value='x'), 'Wrong parameter type'),
+            (Parameter('algorithm', value='ekf'), "'ekf' is not one of"),
+            (Parameter('vehicles', value=['/x']), 'read-only'),
+            (Parameter('sm_gains', value=[-1.0] * 12), 'sm_gains must be finite and >= 0'),
+            (Parameter('max_gap', value=0.0), 'out of range'),
+        ]
+        for param, reason in cases:
+            (result,) = inf.set_parameters([param])
+            assert not result.successful and reason in result.reason, (param.name, result)
+        # valid changes apply: gains live, algorithm restarts
+        (ok,) = inf.set_parameters([Parameter('gamma_theta', value=10.0)])
+        assert ok.successful and inf.engines[''].config.estimator.gamma_theta == 10.0
+        (ok,) = inf.set_parameters([Parameter('algorithm', value='cloe')])
+        assert ok.successful and inf.engines[''].config.estimator.algorithm == 'cloe'
+        # an integer where a float is expected is fine on the command line / in YAML
+    finally:
+        inf.destroy_node()
+
+
+def test_integer_overrides_for_float_parameters_are_accepted(context):
+    inf = InferenceNode(context=context, parameter_overrides=[Parameter('rate', value=50)])
+    try:
+        assert inf.engine_config.rate == 50.0
+        assert inf.get_parameter('rate').type_ == Parameter.Type.DOUBLE
+    finally:
+        inf.destroy_node()

@@ -1,0 +1,482 @@
+"""bag_player: real node processes on a domain of their own, a subscriber in this process.
+
+Every message of the bag must arrive, decode to what the bag holds, in per-topic order, spaced by
+the recorded log times divided by the rate; bad parameters and bad bags end the process with
+status 1 and a message saying what is wrong.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from mcap.reader import make_reader
+from nav_msgs.msg import Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+from ros_helpers import NodeProcess, reserve_domain_id, spin_until
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosgraph_msgs.msg import Clock
+
+from cloe_ros.core.samples import OdometrySample
+from cloe_ros.io.messages import (
+    ODOMETRY,
+    TYPESTORE,
+    Header,
+    decode_clock,
+    decode_odometry,
+    decode_pose_stamped,
+    encode_odometry,
+    ns_to_time,
+)
+from cloe_ros.io.reader import BagReader
+from cloe_ros.ros.common import ParameterError, qos
+from cloe_ros.ros.player_node import PlayerNode, playback_qos
+
+pytestmark = pytest.mark.ros
+
+B2 = Path('/work/shared/data/flights/nanobench_B2_circle_medium_rep1')
+TEMPERATURE = 'sensor_msgs/msg/Temperature'  # its Python package is not installed here
+needs_b2 = pytest.mark.skipif(not B2.is_dir(), reason=f'{B2} not available')
+
+
+@pytest.fixture(scope='module')
+def b2_messages() -> dict[str, list[tuple[int, bytes]]]:
+    if not B2.is_dir():
+        pytest.skip(f'{B2} not available')
+    out: dict[str, list[tuple[int, bytes]]] = {'/odom': [], '/reference': []}
+    with BagReader(B2) as bag:
+        for topic, log_ns, raw in bag.messages():
+            out[topic].append((log_ns, raw))
+    return out
+
+
+@pytest.fixture
+def ros():
+    """An rclpy context of our own on a domain of our own, with a node and an executor."""
+    domain = reserve_domain_id()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node('player_test', context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        yield SimpleNamespace(domain=domain, ctx=ctx, node=node, executor=executor)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+class Arrivals:
+    """Raw subscriptions keeping every message with its arrival time (perf_counter)."""
+
+    def __init__(self, node, topics: dict[str, type]) -> None:
+        self.msgs: dict[str, list[tuple[float, bytes]]] = {t: [] for t in topics}
+        self.subs = {
+            topic: node.create_subscription(
+                cls,
+                topic,
+                lambda raw, t=topic: self.msgs[t].append((time.perf_counter(), raw)),
+                qos(reliable=True, depth=10_000),
+                raw=True,
+            )
+            for topic, cls in topics.items()
+        }
+
+    def count(self, topic: str) -> int:
+        return len(self.msgs[topic])
+
+
+def drain(ros, seconds: float = 0.3) -> None:
+    spin_until(ros.executor, lambda: False, timeout=seconds)
+
+
+def play_to_end(ros, player: NodeProcess, timeout: float) -> int:
+    """Spin (so nothing waits in DDS queues) until the player process has exited; its status."""
+    try:
+        spin_until(ros.executor, lambda: player.proc.poll() is not None, timeout=timeout)
+        drain(ros)
+        return player.wait(1.0)
+    finally:
+        player.stop()
+
+
+def output(player: NodeProcess) -> str:
+    return player.stdout_path.read_text() + player.stderr_path.read_text()
+
+
+def assert_same_odometry(raw_a: bytes, raw_b: bytes) -> None:
+    a, b = decode_odometry(raw_a), decode_odometry(raw_b)
+    assert (a.stamp_ns, a.frame_id, a.child_frame_id) == (b.stamp_ns, b.frame_id, b.child_frame_id)
+    for field in ('position', 'orientation', 'linear', 'angular'):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    np.testing.assert_array_equal(a.pose_covariance, b.pose_covariance)
+    np.testing.assert_array_equal(a.twist_covariance, b.twist_covariance)
+
+
+def assert_same_pose(raw_a: bytes, raw_b: bytes) -> None:
+    a, b = decode_pose_stamped(raw_a), decode_pose_stamped(raw_b)
+    assert (a.stamp_ns, a.frame_id) == (b.stamp_ns, b.frame_id)
+    np.testing.assert_array_equal(a.position, b.position)
+    np.testing.assert_array_equal(a.orientation, b.orientation)
+
+
+# -- playing the real flight ---------------------------------------------------------------------
+
+
+@needs_b2
+def test_plays_every_message_with_recorded_timing(ros, tmp_path, b2_messages):
+    rate = 10.0
+    arrivals = Arrivals(ros.node, {'/odom': Odometry, '/reference': PoseStamped})
+    player = NodeProcess(
+        'bag_player',
+        {'bag': str(B2), 'rate': rate, 'wait_for_subscribers': 1},
+        ros.domain,
+        tmp_path,
+    )
+    n_odom, n_ref = len(b2_messages['/odom']), len(b2_messages['/reference'])
+    status = play_to_end(ros, player, timeout=18)
+    out = output(player)
+    assert status == 0, out
+    assert f'playing {B2}' in out
+    assert f'done: {n_odom + n_ref} messages' in out
+
+    # every message, decoding to the bag's values, in the recorded per-topic order
+    assert arrivals.count('/odom') == n_odom and arrivals.count('/reference') == n_ref
+    for (_, got), (_, want) in zip(arrivals.msgs['/odom'], b2_messages['/odom']):
+        assert_same_odometry(got, want)
+    for (_, got), (_, want) in zip(arrivals.msgs['/reference'], b2_messages['/reference']):
+        assert_same_pose(got, want)
+
+    # timing: arrival time against log time / rate, over both topics
+    log = np.array(
+        [t for tp in ('/odom', '/reference') for t, _ in b2_messages[tp]], dtype=np.int64
+    )
+    arrival = np.array([t for tp in ('/odom', '/reference') for t, _ in arrivals.msgs[tp]])
+    bag_s = (log - log.min()) / 1e9
+    recorded = bag_s.max() / rate  # 27.25 s / 10
+    assert arrival.max() - arrival.min() == pytest.approx(recorded, rel=0.10)
+    slope, intercept = np.polyfit(bag_s, arrival, 1)
+    assert slope == pytest.approx(1.0 / rate, rel=0.10)
+    assert np.corrcoef(bag_s, arrival)[0, 1] > 0.999
+    residual_ms = (arrival - (slope * bag_s + intercept)) * 1e3
+    print(
+        f'arrival vs log time / rate: span {arrival.max() - arrival.min():.3f} s '
+        f'(recorded {recorded:.3f} s), slope {slope * rate:.4f} x 1/rate, residual std '
+        f'{residual_ms.std():.3f} ms, max |residual| {np.abs(residual_ms).max():.3f} ms'
+    )
+
+
+@needs_b2
+def test_publishes_clock(ros, tmp_path, b2_messages):
+    rate, clock_rate = 10.0, 100.0
+    arrivals = Arrivals(ros.node, {'/clock': Clock})
+    player = NodeProcess(
+        'bag_player',
+        {
+            'bag': str(B2),
+            'rate': rate,
+            'topics': ['/reference'],
+            'publish_clock': True,
+            'clock_rate': clock_rate,
+            'wait_for_subscribers': 1,
+        },
+        ros.domain,
+        tmp_path,
+    )
+    # /clock is not waited for: match it before the subscriber the player waits for exists
+    matched = spin_until(
+        ros.executor, lambda: arrivals.subs['/clock'].get_publisher_count() >= 1, timeout=10
+    )
+    ref = Arrivals(ros.node, {'/reference': PoseStamped})
+    status = play_to_end(ros, player, timeout=15)
+    assert matched and status == 0, output(player)
+    with BagReader(B2) as bag:
+        start_ns, end_ns = bag.start_ns, bag.end_ns
+    arrival = np.array([t for t, _ in arrivals.msgs['/clock']])
+    clock = np.array([decode_clock(raw) for _, raw in arrivals.msgs['/clock']], dtype=np.int64)
+    assert ref.count('/reference') == len(b2_messages['/reference'])
+    # about one tick per 1/clock_rate of wall time over the bag's duration / rate
+    ticks = (end_ns - start_ns) / 1e9 / rate * clock_rate
+    assert 0.9 * ticks <= len(clock) <= 1.1 * ticks + 2
+    assert np.all(np.diff(clock) >= 0)  # monotonic
+    assert clock[0] == start_ns and clock[-1] == end_ns  # spans the bag's log times
+    assert np.all(np.diff(clock)[:-1] > 0)  # advancing (only the final tick may repeat)
+    slope = np.polyfit(arrival, (clock - start_ns) / 1e9, 1)[0]
+    assert slope == pytest.approx(rate, rel=0.05)  # bag seconds per wall second
+
+
+@needs_b2
+def test_plays_only_selected_topics(ros, tmp_path, b2_messages):
+    arrivals = Arrivals(ros.node, {'/odom': Odometry, '/reference': PoseStamped})
+    player = NodeProcess(
+        'bag_player',
+        {'bag': str(B2), 'rate': 20.0, 'topics': ['/odom'], 'wait_for_subscribers': 1},
+        ros.domain,
+        tmp_path,
+    )
+    n_odom = len(b2_messages['/odom'])
+    assert play_to_end(ros, player, timeout=15) == 0, output(player)
+    assert arrivals.count('/odom') == n_odom
+    assert arrivals.count('/reference') == 0
+    assert arrivals.subs['/reference'].get_publisher_count() == 0
+    assert f'done: {n_odom} messages' in output(player)
+
+
+def write_small_bag(path: Path, topics: dict[str, str], n: int = 50, qos_profiles=()) -> None:
+    """``n`` messages per topic at 100 Hz; types from the Jazzy type store."""
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {
+            t: writer.add_connection(
+                t, msgtype, typestore=TYPESTORE, offered_qos_profiles=qos_profiles
+            )
+            for t, msgtype in topics.items()
+        }
+        for i in range(n):
+            stamp_ns = 10**18 + i * 10**7
+            for topic, msgtype in topics.items():
+                if msgtype == ODOMETRY:
+                    raw = encode_odometry(
+                        OdometrySample(stamp_ns, 'world', 'body', np.array([i, 0.0, 0.0]),
+                                       np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3), np.zeros(3))
+                    )  # fmt: skip
+                else:
+                    msg = TYPESTORE.types[TEMPERATURE](
+                        header=Header(stamp=ns_to_time(stamp_ns), frame_id='imu'),
+                        temperature=20.0 + i,
+                        variance=0.0,
+                    )
+                    raw = TYPESTORE.serialize_cdr(msg, TEMPERATURE)
+                writer.write(conns[topic], stamp_ns, raw)
+
+
+def test_skips_types_without_python_package(ros, tmp_path):
+    bag = tmp_path / 'bag'
+    write_small_bag(bag, {'/odom': ODOMETRY, '/temperature': TEMPERATURE})
+    arrivals = Arrivals(ros.node, {'/odom': Odometry})
+    player = NodeProcess(
+        'bag_player',
+        {'bag': str(bag), 'rate': 5.0, 'wait_for_subscribers': 1},
+        ros.domain,
+        tmp_path,
+    )
+    status = play_to_end(ros, player, timeout=15)
+    out = output(player)
+    assert status == 0, out
+    assert (
+        'skipping /temperature: the Python package of sensor_msgs/msg/Temperature is not '
+        'installed' in out
+    )
+    assert 'done: 50 messages' in out
+    assert [decode_odometry(raw).position[0] for _, raw in arrivals.msgs['/odom']] == list(
+        map(float, range(50))
+    )
+
+
+def test_damaged_chunk_mid_play(ros, tmp_path):
+    """The messages before a corrupt chunk are played, then the process ends with status 1."""
+    bag = tmp_path / 'bag'
+    write_small_bag(bag, {'/odom': ODOMETRY}, n=3000)  # 30 s, more than one 1 MiB chunk
+    mcap = bag / 'bag.mcap'
+    with open(mcap, 'rb') as fh:
+        chunks = make_reader(fh).get_summary().chunk_indexes
+    assert len(chunks) >= 2
+    before = round((chunks[1].message_start_time - 10**18) / 10**7)  # messages of chunk 0
+    data = bytearray(mcap.read_bytes())
+    crc_at = chunks[1].chunk_start_offset + 1 + 8 + 24
+    data[crc_at : crc_at + 4] = (12345).to_bytes(4, 'little')
+    mcap.write_bytes(bytes(data))
+    arrivals = Arrivals(ros.node, {'/odom': Odometry})
+    player = NodeProcess(
+        'bag_player',
+        {'bag': str(bag), 'rate': 100.0, 'wait_for_subscribers': 1},
+        ros.domain,
+        tmp_path,
+    )
+    status = play_to_end(ros, player, timeout=15)
+    err = player.stderr_path.read_text()
+    assert status == 1, output(player)
+    assert f'{mcap}: corrupt chunk at byte offset {chunks[1].chunk_start_offset}' in err
+    assert 'Traceback' not in err
+    assert 'done:' not in output(player)
+    assert 0 < before < 3000
+    assert [decode_odometry(raw).position[0] for _, raw in arrivals.msgs['/odom']] == list(
+        map(float, range(before))
+    )
+
+
+@needs_b2
+def test_stops_cleanly_on_sigint(ros, tmp_path):
+    player = NodeProcess('bag_player', {'bag': str(B2)}, ros.domain, tmp_path)
+    try:
+        assert player.wait_for_output('playing', timeout=15), output(player)
+    finally:
+        status = player.stop(signal.SIGINT, timeout=10)
+    err = player.stderr_path.read_text()
+    assert status == 0, output(player)
+    assert 'Traceback' not in err and 'ERROR' not in err
+    assert 'done:' not in output(player)
+
+
+def test_wait_timeout_and_start_delay(ros, tmp_path):
+    """Nobody subscribes: after wait_timeout the player warns and, after start_delay, plays."""
+    bag = tmp_path / 'bag'
+    write_small_bag(bag, {'/odom': ODOMETRY}, n=20)
+    params = {'bag': str(bag), 'wait_for_subscribers': 2, 'wait_timeout': 0.5, 'start_delay': 0.5}
+    player = NodeProcess('bag_player', params, ros.domain, tmp_path)
+    status = play_to_end(ros, player, timeout=15)
+    out = output(player)
+    assert status == 0, out
+    assert 'playing without waiting longer than 0.5 s for 2 subscriber(s): /odom has 0' in out
+    assert 'done: 20 messages' in out
+
+    def stamp(text: str) -> float:  # rcutils log line: [LEVEL] [seconds.nanoseconds] [node]: text
+        line = next(x for x in out.splitlines() if text in x)
+        return float(line.split('] [')[1].split(']')[0])
+
+    assert stamp('playing /') - stamp('waiting for 2 subscriber(s)') >= 1.0
+
+
+# -- refusing to start ---------------------------------------------------------------------------
+
+
+def truncated_bag(tmp_path: Path) -> Path:
+    bag = tmp_path / 'cut'
+    write_small_bag(bag, {'/odom': ODOMETRY}, n=200)
+    mcap = bag / 'cut.mcap'
+    mcap.write_bytes(mcap.read_bytes()[:5000])
+    return bag
+
+
+@pytest.mark.parametrize(
+    ('params', 'expected'),
+    [
+        ({}, "ERROR: parameter 'bag' is required"),
+        ({'bag': "''"}, "ERROR: parameter 'bag' is required"),
+        ({'bag': '/no/such/bag'}, 'ERROR: /no/such/bag does not exist'),
+        ({'bag': 'TRUNCATED'}, 'cut.mcap is truncated: it ends without the MCAP footer'),
+        ({'bag': str(B2), 'rate': 0.0}, "ERROR: parameter 'rate'"),
+        ({'bag': str(B2), 'rate': -1}, "ERROR: parameter 'rate'"),
+        ({'bag': str(B2), 'rate': 101.0}, "ERROR: parameter 'rate'"),
+        ({'bag': str(B2), 'topics': ['/odm']}, 'ERROR: parameter topics: /odm not in'),
+        ({'bag': 'UNKNOWN_TYPES'}, 'nothing to play (no topic can be published)'),
+    ],
+    ids=[
+        'no-bag',
+        'empty-bag',
+        'missing',
+        'truncated',
+        'rate-0',
+        'rate-neg',
+        'rate-101',
+        'topic',
+        'no-known-type',
+    ],
+)
+def test_refuses_to_start(tmp_path, params, expected):
+    params = dict(params)
+    if params.get('bag') == 'TRUNCATED':
+        params['bag'] = str(truncated_bag(tmp_path))
+    elif params.get('bag') == 'UNKNOWN_TYPES':
+        params['bag'] = str(tmp_path / 'temperature')
+        write_small_bag(tmp_path / 'temperature', {'/temperature': TEMPERATURE}, n=5)
+    elif str(B2) in params.values() and not B2.is_dir():
+        pytest.skip(f'{B2} not available')
+    player = NodeProcess('bag_player', params, reserve_domain_id(), tmp_path)
+    try:
+        status = player.wait(15)
+    finally:
+        player.stop()
+    err = player.stderr_path.read_text()
+    assert status == 1, output(player)
+    assert expected in err
+    assert 'Traceback' not in err
+    if 'rate' in params:
+        assert '(0, 100]' in err or 'out of range' in err
+    if params.get('bag', '').endswith('cut'):
+        assert f'cloe bag recover {params["bag"]}' in err
+
+
+# -- in-process: parameters at run time, QoS -----------------------------------------------------
+
+
+def test_playback_qos():
+    zero = QosTime(0, 0)
+
+    def profile(rel, dur):
+        return Qos(
+            QosHistory.KEEP_LAST, 10, rel, dur, zero, zero, QosLiveliness.AUTOMATIC, zero, False
+        )
+
+    rel, be = QosReliability.RELIABLE, QosReliability.BEST_EFFORT
+    tl, vol = QosDurability.TRANSIENT_LOCAL, QosDurability.VOLATILE
+    assert playback_qos([]) == (True, False)
+    assert playback_qos([profile(rel, tl)]) == (True, True)
+    assert playback_qos([profile(rel, tl), profile(rel, vol)]) == (True, False)
+    assert playback_qos([profile(rel, tl), profile(be, tl)]) == (False, True)
+
+
+def test_runtime_parameters_and_recorded_qos(ros, tmp_path):
+    zero = QosTime(0, 0)
+    latched = Qos(
+        QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
+        zero, zero, QosLiveliness.AUTOMATIC, zero, False,
+    )  # fmt: skip
+    bag = tmp_path / 'bag'
+    write_small_bag(bag, {'/odom': ODOMETRY}, n=300, qos_profiles=[latched])  # 3 s
+    player = PlayerNode(
+        context=ros.ctx,
+        parameter_overrides=[
+            Parameter('bag', value=str(bag)),
+            Parameter('exit_when_done', value=False),
+        ],
+    )
+    ros.executor.add_node(player)
+    try:
+        info = ros.node.get_publishers_info_by_topic('/odom')
+        assert [(i.qos_profile.reliability, i.qos_profile.durability) for i in info] == [
+            (ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL)
+        ]
+        for value in (0.0, -2.0, 150.0):
+            (result,) = player.set_parameters([Parameter('rate', value=value)])
+            assert not result.successful
+            assert '(0, 100]' in result.reason or 'out of range' in result.reason
+        (result,) = player.set_parameters([Parameter('bag', value='/elsewhere')])
+        assert not result.successful and 'read-only' in result.reason
+        # speeding up while playing: the remaining ~3 s of bag take well under a second
+        spin_until(ros.executor, lambda: player.published >= 10, timeout=5)
+        assert player.published < 300
+        (result,) = player.set_parameters([Parameter('rate', value=100.0)])
+        assert result.successful
+        assert spin_until(ros.executor, player.finished.is_set, timeout=2.0)
+        assert player.published == 300 and not player.failed
+        assert ros.ctx.ok()  # exit_when_done: false keeps the node (and its context) alive
+    finally:
+        ros.executor.remove_node(player)
+        player.destroy_node()
+
+
+def test_in_process_refusals(ros):
+    with pytest.raises(ParameterError, match="parameter 'bag' is required"):
+        PlayerNode(context=ros.ctx)
+    with pytest.raises(ParameterError, match=r'rate must be in \(0, 100\]'):
+        PlayerNode(
+            context=ros.ctx,
+            parameter_overrides=[Parameter('bag', value=str(B2)), Parameter('rate', value=0.0)],
+        )

@@ -24,7 +24,7 @@ export MPLBACKEND := Agg
 .PHONY: demo test install lint clean
 
 demo: $(VENV)/.installed
-	$(BIN)/cloe paper $(DEMO_ARGS)
+	$(BIN)/cloe demo $(DEMO_ARGS)
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest test $(TEST_ARGS)

@@ -16,18 +16,19 @@ from cloe_ros.core.experiments import PAPER_TABLES
 from cloe_ros.core.simulator import SCENARIOS
 from cloe_ros.io.dataset import load_flight
 
-ALGORITHMS = (('cloe', 'CLOE'), ('cloe_sm', 'CLOE-SM'))
+#: The paper's two algorithms side by side, and the package's identifier that converges.
+ALGORITHMS = (('cloe', 'CLOE'), ('cloe_sm', 'CLOE-SM'), ('cloe_iv', 'CLOE-IV'))
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         'demo',
-        help='run simulator, CLOE and CLOE-SM inference and the recorder as ROS 2 processes',
+        help='run simulator, CLOE / CLOE-SM / CLOE-IV inference and the recorder as processes',
         description=(
-            'On a private DDS domain, start bag_recorder, two cloe_inference nodes (CLOE and '
-            'CLOE-SM side by side) and quadrotor_sim as separate processes, fly a scenario, stop '
-            'them cleanly, then print the comparison table computed from the recorded bag and '
-            'write the plots.'
+            "On a private DDS domain, start bag_recorder, three cloe_inference nodes (the paper's "
+            'CLOE and CLOE-SM side by side, and cloe_iv) and quadrotor_sim as separate processes, '
+            'fly a scenario, stop them cleanly, then print the comparison table computed from the '
+            'recorded bag and write the plots.'
         ),
     )
     p.add_argument(
@@ -88,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
     recorded = ['/odom', '/reference', '/ground_truth', '/true_parameters', '/diagnostics']
     for alg, _ in ALGORITHMS:
-        recorded += [f'/{alg}/state', f'/{alg}/parameters']
+        recorded += [f'/{alg}/state', f'/{alg}/parameters', f'/{alg}/prediction']
     procs: list[NodeProcess] = []
     try:
         recorder = _start('bag_recorder', {'output': str(bag), 'topics': recorded}, env, logs)
@@ -102,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
             ready = 'recording to' if p.name == 'bag_recorder' else 'ready:'
             if not p.wait_for(ready, timeout=30.0):
                 raise CliError(f'{p.name} did not start; its log:\n{p.output()}')
-        print(f'recording to {bag}; CLOE and CLOE-SM inference at {args.rate:g} Hz')
+        print(f'recording to {bag}; ' + ', '.join(label for _, label in ALGORITHMS)
+              + f' inference at {args.rate:g} Hz')  # fmt: skip
         sim = _start('quadrotor_sim', {
             'scenario': args.scenario, 'duration': duration, 'real_time_factor': args.speed,
             'shutdown_when_done': True, 'wait_for_subscribers': 1 + len(ALGORITHMS),

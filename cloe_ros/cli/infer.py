@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -11,6 +12,7 @@ from pathlib import Path
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.core.engine import NS, VehicleEngine
+from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
 from cloe_ros.io.config import ALGORITHMS, build_configs, load_settings
 from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE
@@ -133,6 +135,15 @@ def infer_bag(
             found = wanted
         if reader.message_count == 0:
             raise CliError(f'{bag}: the bag holds no messages')
+        empty = [f'{v}/{name}' for v in found for name in (ODOM, REFERENCE)
+                 if reader.topics[f'{v}/{name}'].count == 0]  # fmt: skip
+        if empty:
+            others = [v or '/' for v in found if not any(e.rsplit('/', 1)[0] == v for e in empty)]
+            raise CliError(
+                f'{bag}: no messages on {", ".join(empty)}: nothing to infer'
+                + (f' (select the other vehicles with --vehicles {" ".join(others)})'
+                   if others else '')
+            )  # fmt: skip
         if output.exists():
             raise CliError(f'{output} exists already, not overwriting.')
         engines = {v: VehicleEngine(engine_config, name=v) for v in found}
@@ -153,47 +164,56 @@ def infer_bag(
         ] if copy_inputs else []  # fmt: skip
         span = max(reader.end_ns - reader.start_ns, 1)
         written: Counter = Counter()
-        with BagWriter(output, compression=compression) as writer:
-            for topic in copies:
-                writer.add_topic(topic, topics[topic], reader.topics[topic].offered_qos)
-            for enc in encoders.values():
-                for topic, msgtype in enc.topics.items():
-                    writer.add_topic(topic, msgtype)
+        writer = BagWriter(output, compression=compression)
+        try:
+            with writer:
+                for topic in copies:
+                    writer.add_topic(topic, topics[topic], reader.topics[topic].offered_qos)
+                for enc in encoders.values():
+                    for topic, msgtype in enc.topics.items():
+                        writer.add_topic(topic, msgtype)
 
-            def emit(vehicle, estimates):
-                engine, enc = engines[vehicle], encoders[vehicle]
-                for est in estimates:
-                    for topic, stamp, data in enc.encode(
-                        est, engine.world_frame or '', engine.child_frame
-                    ):
-                        writer.write(topic, stamp, data)
+                def emit(vehicle, estimates):
+                    engine, enc = engines[vehicle], encoders[vehicle]
+                    for est in estimates:
+                        for topic, stamp, data in enc.encode(
+                            est, engine.world_frame or '', engine.child_frame
+                        ):
+                            writer.write(topic, stamp, data)
+                            written[topic] += 1
+
+                count = 0
+                for topic, log_ns, raw in reader.messages(set(route) | set(copies)):
+                    if topic in copies:
+                        writer.write(topic, log_ns, raw)
                         written[topic] += 1
-
-            count = 0
-            for topic, log_ns, raw in reader.messages(set(route) | set(copies)):
-                if topic in copies:
-                    writer.write(topic, log_ns, raw)
-                    written[topic] += 1
-                target = route.get(topic)
-                if target is None:
-                    continue
-                vehicle, kind = target
-                try:
-                    if kind == ODOM:
-                        engines[vehicle].add_odometry(messages.decode_odometry(raw))
-                    elif kind == REFERENCE:
-                        engines[vehicle].add_reference(messages.decode_pose_stamped(raw))
-                    else:
-                        engines[vehicle].add_plan(messages.decode_path(raw))
-                except messages.MessageError:
-                    malformed[vehicle] += 1
-                    continue
-                emit(vehicle, engines[vehicle].advance())
-                count += 1
-                if progress is not None and count % 500 == 0:
-                    progress('infer', (log_ns - reader.start_ns) / span)
-            for v in found:
-                emit(v, engines[v].finish())
+                    target = route.get(topic)
+                    if target is None:
+                        continue
+                    vehicle, kind = target
+                    try:
+                        if kind == ODOM:
+                            engines[vehicle].add_odometry(messages.decode_odometry(raw))
+                        elif kind == REFERENCE:
+                            engines[vehicle].add_reference(messages.decode_pose_stamped(raw))
+                        else:
+                            engines[vehicle].add_plan(messages.decode_path(raw))
+                    except messages.MessageError:
+                        malformed[vehicle] += 1
+                        continue
+                    emit(vehicle, engines[vehicle].advance())
+                    count += 1
+                    if progress is not None and count % 500 == 0:
+                        progress('infer', (log_ns - reader.start_ns) / span)
+                for v in found:
+                    emit(v, engines[v].finish())
+        except BaseException as err:
+            # an output cut short looks complete to the next tool: do not leave it behind
+            shutil.rmtree(output, ignore_errors=True)
+            if isinstance(err, CloeError):
+                msg = f'{err} No output written ({output} removed).'
+                raise type(err)(msg) from err
+            raise
         if progress is not None:
             progress('infer', 1.0)
         duration = (reader.end_ns - reader.start_ns) / NS

@@ -142,6 +142,7 @@ class VehicleStats:
     steps: int = 0
     time_jumps: int = 0
     resets: int = 0
+    diverged: int = 0
     plans_received: int = 0
     plans_accepted: int = 0
     predictions: int = 0
@@ -434,6 +435,12 @@ class VehicleEngine:
             est.step(zeta[None], r[None], h)
             self._t_ns = t_next
             self._last_r = r
+            if not np.all(np.isfinite(est.zeta_hat)):
+                # a diverged estimator never publishes: start over on the next step's data
+                self.stats.diverged += 1
+                self.reset()
+                self.stats.resets -= 1  # (counted as a divergence, not a user's reset)
+                break
             out.append(self._estimate(t_next, zeta, r))
         return out
 

@@ -70,6 +70,9 @@ ROW_NAMES = ('x_theta', 'y_phi', 'psi', 'z', 'x_coupling', 'y_coupling')
 N_ROWS = len(ROW_NAMES)
 WIDTH = 6  # rows are padded to 5 entries, plus the start-up transient (see _DECAY)
 
+#: Signals below this RMS (normalised units: 1 mm, 0.1 mrad of tilt) carry no excitation.
+QUIET = 1e-3
+
 #: Normalising scale of each state (positions m, velocities m/s, angles rad, rates rad/s).
 STATE_SCALE = np.array([1.0, 1.0, 0.1, 0.5, 1.0, 1.0, 0.1, 0.5, 0.3, 1.0, 1.0, 1.0])
 REFERENCE_SCALE = np.array([1.0, 1.0, 0.3, 1.0])
@@ -200,14 +203,20 @@ def filter_matrices(bandwidth: float, highpass: float, h: float):
     return ad, bd[:, 0], cd[0], dd[0, 0], cd[1], dd[1, 0]
 
 
-def block_is_stable(theta: np.ndarray, coupling: np.ndarray, margin: float = 0.0) -> np.ndarray:
-    """Per vehicle and block (N, 4): all poles of the block have real part < -margin."""
+def block_is_stable(
+    theta: np.ndarray, coupling: np.ndarray, margin: float = 0.0, step: float | None = None
+) -> np.ndarray:
+    """Per vehicle and block (N, 4): all poles have real part < -margin; with ``step`` also
+    ``|1 + step * pole| < 1``, so an explicit step of that size on the model stays stable too."""
     a, _ = system_matrices(np.atleast_2d(theta), np.atleast_2d(coupling))
     out = np.empty((a.shape[0], len(BLOCKS)), dtype=bool)
     for j, block in enumerate(BLOCKS):
         idx = np.array(block.states)
-        sub = a[:, idx[:, None], idx[None, :]]
-        out[:, j] = np.max(np.linalg.eigvals(sub).real, axis=-1) < -margin
+        poles = np.linalg.eigvals(a[:, idx[:, None], idx[None, :]])
+        ok = np.max(poles.real, axis=-1) < -margin
+        if step is not None:
+            ok &= np.max(np.abs(1.0 + step * poles), axis=-1) < 0.99
+        out[:, j] = ok
     return out
 
 
@@ -404,17 +413,24 @@ class IvIdentifier:
         identified would starve the very measure that declares it. The usable model (what the
         observer runs on and the predictions integrate) takes a block only when its rows are at
         least converging and the block is stable; otherwise it keeps what it had (at first, the
-        prior), so a row without excitation never moves it.
+        prior), so a row without excitation never moves it; and only if an explicit step of
+        ``h`` on it is stable, since the observer integrates the model's drift explicitly.
         """
         stable = block_is_stable(self.theta, self.coupling, margin=0.05)
+        # the observer takes the model's drift explicitly: it also has to be stable for the step
+        steppable = block_is_stable(self.theta, self.coupling, margin=0.05, step=self.h)
         usable = self.status >= CONVERGING
+        # a new auxiliary model moves the instruments; with a quiet reference that motion would be
+        # all the instruments carry, so a block's auxiliary model only changes while its reference
+        # moves (filtered reference above QUIET RMS, normalised units)
+        moving = self.reference_rms() > QUIET
         for j, sl in enumerate(BLOCK_SLICES):
-            ok = stable[:, j]
+            ok = stable[:, j] & moving[:, j]
             self.aux_theta[ok, sl] = self.theta[ok, sl]
             coupled = BLOCKS[j].coupling is not None
             if coupled:
                 self.aux_coupling[ok, j] = self.coupling[ok, j]
-            ok = ok & usable[:, j]
+            ok = ok & usable[:, j] & steppable[:, j]
             if coupled and self.config.estimate_coupling:
                 ok &= usable[:, len(BLOCKS) + j]
             self.model_theta[ok, sl] = self.theta[ok, sl]
@@ -422,6 +438,12 @@ class IvIdentifier:
                 self.model_coupling[ok, j] = self.coupling[ok, j]
         if np.any(stable):
             self._set_aux(np.ones(self.theta.shape[0], dtype=bool))
+
+    def reference_rms(self) -> np.ndarray:
+        """RMS of each block's filtered reference over the short window (N, 4), normalised."""
+        idx = ROW_SIZE[: len(BLOCKS)] - 1  # the reference is the last entry of a block's row
+        power = self.gram_xi[:, np.arange(len(BLOCKS)), idx, idx]
+        return np.sqrt(np.maximum(power, 0.0) / max(self.weight_e, 1e-12))
 
     def _solve(self) -> None:
         """The regularised IV normal equations: ``(C + W) theta = b + W theta_prior``.
@@ -462,7 +484,10 @@ class IvIdentifier:
             wx = _inv_sqrt(gx)
             wp = _inv_sqrt(gp)
             s = np.linalg.svd(wx @ c @ wp, compute_uv=False)
-            exc[:, ps] = np.nan_to_num(s[..., -1])
+            # instruments too weak to mean anything (below 1e-3 RMS in normalised units: 1 mm of
+            # position, 0.1 mrad of tilt) count as no excitation at all
+            rms = np.sqrt(np.trace(gx, axis1=-2, axis2=-1) / max(self.weight_e, 1e-12) / size)
+            exc[:, ps] = np.where(rms > QUIET, np.nan_to_num(s[..., -1]), 0.0)
             # IV covariance s2 tau C^-1 G_xi C^-T of the estimate's (long) window, relative to
             # the row's size
             c_long = self.cross[:, ps][..., k, k]

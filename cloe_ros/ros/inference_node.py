@@ -188,7 +188,9 @@ class InferenceNode(Node):
             ('qos_reliability', 'reliable', describe(
                 'QoS reliability of the subscriptions: reliable | best_effort', **ro,
                 additional_constraints='reliable or best_effort')),
-            ('qos_depth', 100, describe('QoS history depth', int_range=(1, 10000), **ro)),
+            ('qos_depth', 1000, describe(
+                'QoS history depth of the subscriptions (10 s of 100 Hz odometry: a node starved '
+                'of CPU for a moment loses nothing)', int_range=(1, 100000), **ro)),
         ]  # fmt: skip
         values = {name: declare(self, name, default, d) for name, default, d in p}
         if values['qos_reliability'] not in ('reliable', 'best_effort'):
@@ -370,8 +372,8 @@ class InferenceNode(Node):
         rejected = sum(s.rejected.values()) + self.malformed[vehicle]
         if not engine.started:
             level, message = messages.WARN, 'waiting for odom and reference'
-        elif not (s.last_error_norm == s.last_error_norm):  # NaN
-            level, message = messages.ERROR, 'estimate is not finite'
+        elif s.diverged:
+            level, message = messages.WARN, f'running; the estimator diverged {s.diverged} time(s)'
         elif rejected:
             level, message = messages.WARN, f'running; {rejected} input(s) rejected'
         else:
@@ -394,13 +396,14 @@ class InferenceNode(Node):
             *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
             ('time_jumps', str(s.time_jumps)),
             ('resets', str(s.resets)),
+            ('diverged', str(s.diverged)),
             ('error_norm', f'{s.last_error_norm:.6g}'),
             ('last_stamp', '' if s.last_stamp_ns is None else f'{s.last_stamp_ns / NS:.3f}'),
             ('predictions', str(s.predictions)),
             ('predictions_withheld', str(s.predictions_withheld)),
             ('plans_accepted', str(s.plans_accepted)),
         ]
-        return Status(level, f'cloe_inference: {vehicle or "/"}', message, vehicle or '/',
+        return Status(level, f'{self.get_name()}: {vehicle or "/"}', message, vehicle or '/',
                       tuple(values))  # fmt: skip
 
     def _publish_diagnostics(self) -> None:

@@ -155,8 +155,10 @@ class SimulatorNode(Node):
                                           float_range=(100.0, 10000.0), **ro)),
             ('odom_rate', 100.0, describe('odom rate, Hz (must divide sim_rate)',
                                           float_range=(1.0, 1000.0), **ro)),
-            ('reference_rate', 50.0, describe('reference rate, Hz (must divide sim_rate)',
-                                              float_range=(1.0, 1000.0), **ro)),
+            ('reference_rate', 100.0, describe(
+                'reference rate, Hz (must divide sim_rate; estimators hold the reference between '
+                'samples, so a slow rate biases identification of the fast loops)',
+                float_range=(1.0, 1000.0), **ro)),
             ('publish_clock', False, describe('publish /clock with the simulation time', **ro)),
             ('publish_truth', True, describe(
                 'publish ground_truth and true_parameters per vehicle', **ro)),

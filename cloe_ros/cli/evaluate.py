@@ -106,6 +106,11 @@ def _settings(args, algorithm: str) -> dict:
 
 
 def format_prediction(score: PredictionScore, label: str) -> str:
+    if not score.count.any():
+        return (
+            f'  prediction, {label}: none; {score.withheld} withheld (the identified model '
+            'has an unstable block, and unstable dynamics are never extrapolated)'
+        )
     lines = [
         f'  prediction RMSE [m], {label} ({int(score.count[0])} predictions issued in '
         f'[{score.t_from:.0f}, {score.t_to:.0f}] s; {score.withheld} withheld)',
@@ -301,14 +306,28 @@ def run_bag(args) -> int:
         run = run_engine(engine_config, t, zeta, ref, plans,
                          progress=lambda f, a=algorithm: bar(f'estimate {a}', f))  # fmt: skip
         bar.close()
-        score = score_predictions(run, t, zeta, engine_config.prediction.step, HORIZONS,
-                                  t_from=args.score_from)  # fmt: skip
+        # in flight: measured altitude above 0.2 m and the setpoint above the ground altitude;
+        # a landed vehicle (motors off, often under a zero setpoint) follows no closed loop
+        ground = engine_config.estimator.ground_altitude
+
+        def in_flight(times, ground=ground):
+            z = np.interp(times, t, zeta[:, 10], left=np.nan, right=np.nan)
+            zd = np.interp(times, t, ref[:, 3], left=np.nan, right=np.nan)
+            return (z > 0.2) & (zd > ground)
+
+        step = engine_config.prediction.step
+        score = score_predictions(run, t, zeta, step, HORIZONS, t_from=args.score_from,
+                                  valid=in_flight)  # fmt: skip
+        score_all = score_predictions(run, t, zeta, step, HORIZONS, t_from=args.score_from)
         print(f'\n{algorithm}:')
         for line in _identification_summary(run):
             print(line)
-        print(format_prediction(score, f'against the measured positions, from t >= '
-                                       f'{args.score_from:g} s'))  # fmt: skip
-        out['algorithms'][algorithm] = {'prediction': _score_dict(score),
+        print(format_prediction(score, 'against the measured positions, issued and landing in '
+                                       'flight'))  # fmt: skip
+        print(format_prediction(score_all, f'against the measured positions, every prediction '
+                                           f'from t >= {args.score_from:g} s'))  # fmt: skip
+        out['algorithms'][algorithm] = {'prediction_in_flight': _score_dict(score),
+                                        'prediction_all': _score_dict(score_all),
                                         'coupling_final': run.coupling[-1].tolist()}  # fmt: skip
     if args.json:
         args.json.write_text(json.dumps(out, indent=2, default=float))

@@ -86,7 +86,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help='write into FOLDER even if it is not empty (replaces the report files)',
     )
     p.add_argument(
-        '--algorithm', choices=ALGORITHMS, help='estimator for an input bag (default: cloe_sm)'
+        '--algorithm', choices=ALGORITHMS, help='estimator for an input bag (default: cloe_iv)'
     )
     p.add_argument('--rate', type=float, help='estimator rate for an input bag, Hz (default 100)')
     p.add_argument(

@@ -182,6 +182,10 @@ class VehicleEngine:
         self._predictor = Predictor(config.prediction)
         self._prediction_slot: int | None = None
         self._last_r: np.ndarray | None = None
+        self._offset = np.zeros(4)  # steady-state offsets per reference channel (predictions)
+        self._offset_prev_r: np.ndarray | None = None
+        self._ref_rate = np.ones(4)  # (m/s, rad/s: "moving" until measured still)
+        self._gains = np.ones(4)
 
     # ----------------------------------------------------------------------------- inputs
 
@@ -435,6 +439,7 @@ class VehicleEngine:
             est.step(zeta[None], r[None], h)
             self._t_ns = t_next
             self._last_r = r
+            self._track_offsets(zeta, r)
             if not np.all(np.isfinite(est.zeta_hat)):
                 # a diverged estimator never publishes: start over on the next step's data
                 self.stats.diverged += 1
@@ -468,6 +473,27 @@ class VehicleEngine:
                 self._predict(e)
         return e
 
+    def _track_offsets(self, zeta: np.ndarray, r: np.ndarray) -> None:
+        """Steady-state offsets between where the vehicle settles and where the model says it
+        settles for the same reference (per reference channel), for the predictions.
+
+        A real vehicle may hold its altitude a few centimetres off the setpoint; the identifier's
+        band-pass filters cannot see constants. The offset ``pos - g r`` (``g`` the model's static
+        gain) is low-passed (2 s) while that channel's reference is still (below 5 cm/s or
+        0.05 rad/s), and held while it moves, when ``pos - g r`` is tracking lag, not offset.
+        """
+        h = self.config.step_ns / NS
+        if self._offset_prev_r is None:
+            self._offset_prev_r = r.copy()
+            return
+        rate = np.abs(r - self._offset_prev_r) / h
+        self._offset_prev_r = r.copy()
+        self._ref_rate += min(1.0, h / 0.5) * (rate - self._ref_rate)
+        still = self._ref_rate < 0.05
+        pos = zeta[[0, 4, 8, 10]]
+        error = pos - self._gains * r - self._offset
+        self._offset += np.where(still, min(1.0, h / 2.0) * error, 0.0)
+
     def _predict(self, e: Estimate) -> None:
         """Attach the anticipated path to ``e`` (or say why there is none)."""
         theta, coupling = (m[0] for m in self._est.model)
@@ -479,13 +505,17 @@ class VehicleEngine:
             )
             self.stats.predictions_withheld += 1
             return
+        # the reference, shifted by the steady-state offsets (see _track_offsets)
+        gains = self._predictor.static_gains(theta, coupling)
+        self._gains = gains
+        shift = np.divide(self._offset, gains, out=np.zeros(4), where=np.abs(gains) > 0.1)
         plan = None
         if self._plan is not None and self._plan[0][-1] > e.stamp_ns:
             stamps, refs = self._plan
             refs = refs.copy()
             refs[:, 2] = refs[:, 2] + (unwrap_near(refs[0, 2], e.zeta_hat[8]) - refs[0, 2])
-            plan = ((stamps - e.stamp_ns) / NS, refs)
-        states = self._predictor.predict(e.zeta_hat, theta, coupling, e.reference, plan)
+            plan = ((stamps - e.stamp_ns) / NS, refs + shift)
+        states = self._predictor.predict(e.zeta_hat, theta, coupling, e.reference + shift, plan)
         n = len(states)
         step_ns = round(self.config.prediction.step * NS)
         e.prediction = (e.stamp_ns + step_ns * np.arange(1, n + 1, dtype=np.int64), states)

@@ -147,11 +147,13 @@ def score_predictions(
     t_to: float = np.inf,
     true_model: tuple[np.ndarray, np.ndarray] | None = None,
     plans: Callable[[float], tuple[np.ndarray, np.ndarray] | None] | None = None,
+    valid: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> PredictionScore:
     """RMSE of the predicted positions at each horizon against ``zeta_truth``, beside the
     baselines from the same starting estimate; ``true_model = (theta, coupling)`` adds the
     true-model predictor (same start, same reference handling: held, or ``plans(t0)`` with times
-    relative to the run's start)."""
+    relative to the run's start). ``valid(times) -> bool array`` restricts the scoring to
+    predictions whose issue time and horizon time are both valid (e.g. in flight)."""
     horizons = tuple(horizons)
     keep = [i for i, t0 in enumerate(run.pred_t) if t_from <= t0 <= t_to]
     k_of = [round(h / step) for h in horizons]
@@ -165,6 +167,11 @@ def score_predictions(
         zeta0 = run.pred_zeta0[i]
         dts = np.array([k * step for k in k_of])
         actual = actual_positions(t_truth, zeta_truth, t0 + dts)
+        if valid is not None:
+            ok = valid(np.concatenate([[t0], t0 + dts]))
+            if not ok[0]:
+                continue
+            actual[~ok[1:]] = np.nan
         cv = constant_velocity(zeta0, dts)
         hold = hold_position(zeta0, dts)
         true_states = None

@@ -65,9 +65,24 @@ NOT_IDENTIFIABLE, CONVERGING, IDENTIFIED = 0, 1, 2
 STATUS_NAMES = {NOT_IDENTIFIABLE: 'not identifiable', CONVERGING: 'converging',
                 IDENTIFIED: 'identified'}  # fmt: skip
 
-#: Names of the identified rows: the four blocks, then the tilt couplings of the 4th-order blocks.
-ROW_NAMES = ('x_theta', 'y_phi', 'psi', 'z', 'x_coupling', 'y_coupling')
+#: Names of the identified rows: the four blocks, the tilt couplings of the 4th-order blocks,
+#: and the reduced position loops of those blocks (see ``ATTITUDE_LOOP``).
+ROW_NAMES = ('x_theta', 'y_phi', 'psi', 'z', 'x_coupling', 'y_coupling', 'x_loop', 'y_loop')
 N_ROWS = len(ROW_NAMES)
+COUPLING_ROWS = (4, 5)
+LOOP_ROWS = (6, 7)
+
+#: The reduced model of a 4th-order block: a cascade whose attitude loop is assumed (stiffness
+#: ``k_a``, damping ``k_d``: omega 14 rad/s, zeta 0.7, much faster than any position loop), so only
+#: the position loop is identified, two numbers a single-frequency flight determines::
+#:
+#:     theta_ddot + k_a theta + k_d theta_dot = -k_a (p1 (x - x_d) + p2 x_dot)
+#:
+#: with ``p1 = k_p / c``, ``p2 = k_v / c`` (position gains over the tilt coupling). As a full row:
+#: ``[a_x, a_x_dot, a_theta, a_theta_dot, b] = [-k_a p1, -k_a p2, -k_a, -k_d, k_a p1]``.
+ATTITUDE_LOOP = (196.0, 19.6)
+#: The prior position loop: ``k_p = 4``, ``k_v = 3.2`` m/s^2 per m and per m/s (omega 2 rad/s).
+PRIOR_LOOP = (4.0, 3.2)
 WIDTH = 6  # rows are padded to 5 entries, plus the start-up transient (see _DECAY)
 
 #: Signals below this RMS (normalised units: 1 mm, 0.1 mrad of tilt) carry no excitation.
@@ -78,19 +93,28 @@ STATE_SCALE = np.array([1.0, 1.0, 0.1, 0.5, 1.0, 1.0, 0.1, 0.5, 0.3, 1.0, 1.0, 1
 REFERENCE_SCALE = np.array([1.0, 1.0, 0.3, 1.0])
 
 
+def loop_row(p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """The full 5-parameter row (..., 5) of the reduced model with position loop ``(p1, p2)``."""
+    k_a, k_d = ATTITUDE_LOOP
+    p1, p2 = np.asarray(p1, float), np.asarray(p2, float)
+    return np.stack(
+        [-k_a * p1, -k_a * p2, np.full_like(p1, -k_a), np.full_like(p1, -k_d), k_a * p1], axis=-1
+    )
+
+
 def generic_prior() -> tuple[np.ndarray, np.ndarray]:
     """A generic stable closed loop with unit static gain: the identifier's prior.
 
-    x-theta and y-phi: poles -1.5 +- 1j and -6 +- 6j; psi and z: -5 +- 5j. Returns ``(theta (16,),
-    coupling (2,))`` with the couplings at +g and -g. It only decides what the estimate is in
+    x-theta and y-phi: the reduced cascade with the assumed attitude loop and the prior position
+    loop (poles about -1.7 +- 1.0j and -8.1 +- 10.4j); psi and z: -5 +- 5j. Returns ``(theta (16,),
+    coupling (2,))`` with the couplings at +g and -g. It only decides what the model is in
     directions the data have not excited yet.
     """
     theta = []
     for block in BLOCKS:
         if block.order == 4:
-            p = np.poly([-1.5 + 1j, -1.5 - 1j, -6 + 6j, -6 - 6j]).real
             g = block.coupling
-            theta += [-p[4] / g, -p[3] / g, -p[2], -p[1], p[4] / g]
+            theta += list(loop_row(PRIOR_LOOP[0] / g, PRIOR_LOOP[1] / g))
         else:
             p = np.poly([-5 + 5j, -5 - 5j]).real
             theta += [-p[2], -p[1], p[2]]
@@ -156,37 +180,58 @@ N_CHANNELS = _ZERO + 1
 _DECAY = N_CHANNELS
 
 
-def _row_layout() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Channel indices of regressors, instruments and targets of every row (padded with zero)."""
-    phi = np.full((N_ROWS, WIDTH), _ZERO)
-    xi = np.full((N_ROWS, WIDTH), _ZERO)
-    phi[:, WIDTH - 1] = xi[:, WIDTH - 1] = _DECAY
-    target = np.zeros(N_ROWS, dtype=np.intp)
+def _row_layout():
+    """Linear maps from the filtered channels to every row's regressors, instruments and target.
+
+    ``phi = F @ PHI_MAP[row]``, ``xi = F @ XI_MAP[row]`` (entries padded to ``WIDTH``, the last one
+    the start-up transient), ``y = F @ Y_F_MAP[row] + sF @ Y_D_MAP[row]``, where ``F`` and
+    ``sF`` are the filtered channels (normalised units). Also the number of parameters of each
+    row and the normalising scales of its entries and target.
+    """
+    n_f = N_CHANNELS + 1
+    phi = np.zeros((N_ROWS, n_f, WIDTH))
+    xi = np.zeros((N_ROWS, n_f, WIDTH))
+    y_f = np.zeros((N_ROWS, n_f))
+    y_d = np.zeros((N_ROWS, N_CHANNELS))
     size = np.zeros(N_ROWS, dtype=np.intp)
-    scale = np.ones((N_ROWS, WIDTH))  # normalising scale of each regressor entry
+    scale = np.ones((N_ROWS, WIDTH))
+    target_scale = np.ones(N_ROWS)
+    phi[:, _DECAY, WIDTH - 1] = xi[:, _DECAY, WIDTH - 1] = 1.0
+    coupled = [b for b in BLOCKS if b.coupling is not None]
     for p, block in enumerate(BLOCKS):
         n = block.order
-        phi[p, :n] = [_ZETA + i for i in block.states]
-        phi[p, n] = _REF + block.reference
-        xi[p, :n] = [_AUX + i for i in block.states]
-        xi[p, n] = _REF + block.reference
-        target[p] = _ZETA + block.last
-        size[p] = n + 1
-        scale[p, :n] = STATE_SCALE[list(block.states)]
+        for j, i in enumerate(block.states):
+            phi[p, _ZETA + i, j] = 1.0
+            xi[p, _AUX + i, j] = 1.0
+            scale[p, j] = STATE_SCALE[i]
+        phi[p, _REF + block.reference, n] = xi[p, _REF + block.reference, n] = 1.0
         scale[p, n] = REFERENCE_SCALE[block.reference]
-    for k, block in enumerate(b for b in BLOCKS if b.coupling is not None):
-        p = len(BLOCKS) + k
+        y_d[p, _ZETA + block.last] = 1.0
+        size[p], target_scale[p] = n + 1, STATE_SCALE[block.last]
+    for k, block in enumerate(coupled):
+        p = COUPLING_ROWS[k]
         angle, velocity = block.states[2], block.states[1]
-        phi[p, 0], xi[p, 0], target[p], size[p] = _ZETA + angle, _AUX + angle, _ZETA + velocity, 1
-        scale[p, 0] = STATE_SCALE[angle]
-    return phi, xi, target, size, scale
+        phi[p, _ZETA + angle, 0] = xi[p, _AUX + angle, 0] = 1.0
+        y_d[p, _ZETA + velocity] = 1.0
+        size[p], target_scale[p], scale[p, 0] = 1, STATE_SCALE[velocity], STATE_SCALE[angle]
+    k_a, k_d = ATTITUDE_LOOP
+    for k, block in enumerate(coupled):
+        p = LOOP_ROWS[k]
+        pos, vel, angle, rate = block.states
+        s_rate = STATE_SCALE[rate]
+        # target: sF{rate} + k_a F{angle} + k_d F{rate}, in units of the rate's scale
+        y_d[p, _ZETA + rate] = 1.0
+        y_f[p, _ZETA + angle] = k_a * STATE_SCALE[angle] / s_rate
+        y_f[p, _ZETA + rate] = k_d
+        # regressors -k_a [F{pos - pos_d}, F{vel}] (positions and velocities have scale 1)
+        ref = _REF + block.reference
+        phi[p, _ZETA + pos, 0], phi[p, ref, 0], phi[p, _ZETA + vel, 1] = -k_a, k_a, -k_a
+        xi[p, _AUX + pos, 0], xi[p, ref, 0], xi[p, _AUX + vel, 1] = -k_a, k_a, -k_a
+        size[p], target_scale[p] = 2, s_rate
+    return phi, xi, y_f, y_d, size, scale, target_scale
 
 
-ROW_PHI, ROW_XI, ROW_TARGET, ROW_SIZE, ROW_SCALE = _row_layout()
-#: Normalising scale of each row's target (the derivative of its last state).
-TARGET_SCALE = np.array(
-    [STATE_SCALE[b.last] for b in BLOCKS] + [STATE_SCALE[b.states[1]] for b in BLOCKS[:2]]
-)
+PHI_MAP, XI_MAP, Y_F_MAP, Y_D_MAP, ROW_SIZE, ROW_SCALE, TARGET_SCALE = _row_layout()
 
 
 def filter_matrices(bandwidth: float, highpass: float, h: float):
@@ -215,7 +260,7 @@ def block_is_stable(
         poles = np.linalg.eigvals(a[:, idx[:, None], idx[None, :]])
         ok = np.max(poles.real, axis=-1) < -margin
         if step is not None:
-            ok &= np.max(np.abs(1.0 + step * poles), axis=-1) < 0.99
+            ok &= np.max(np.abs(1.0 + step * poles), axis=-1) < 1.0
         out[:, j] = ok
     return out
 
@@ -254,6 +299,9 @@ class IvIdentifier:
         )
         self.theta = np.tile(self.theta_prior, (n, 1))
         self.coupling = np.tile(self.coupling_prior, (n, 1))
+        self.loop_prior = np.array([[PRIOR_LOOP[0] / c, PRIOR_LOOP[1] / c]
+                                    for c in self.coupling_prior])  # fmt: skip
+        self.loops = np.tile(self.loop_prior, (n, 1, 1))
         # filter bank, started in steady state for the first sample (constants are filtered out)
         ad, bd, cf, df, cd, dd = filter_matrices(config.bandwidth, config.highpass, self.h)
         self._ad_t, self._bd, self._cf, self._df, self._cd, self._dd = ad.T, bd, cf, df, cd, dd
@@ -268,6 +316,7 @@ class IvIdentifier:
         self.aux_coupling = self.coupling.copy()
         self.model_theta = self.theta.copy()  # the usable model (see _update_model)
         self.model_coupling = self.coupling.copy()
+        self.model_kind = np.full((n, len(BLOCKS)), 'prior')  # per block: prior|reduced|full
         self._set_aux(np.ones(n, dtype=bool))
         self._since_aux = 0.0
         # normal equations and excitation statistics per row (normalised coordinates)
@@ -291,13 +340,13 @@ class IvIdentifier:
             self._mask[p, : ROW_SIZE[p]] = True
         self._mask[:, WIDTH - 1] = True
         if not config.estimate_coupling:
-            self._mask[len(BLOCKS) :] = False
+            self._mask[list(COUPLING_ROWS)] = False
         self._t = 0.0  # time since the start
         # the estimate is solved at 20 Hz, the excitation measured at 4 Hz (both cheap enough)
         self._solve_every = max(1, round(0.05 / self.h))
         self._excitation_every = max(1, round(0.25 / self.h))
         self._settle = 5.0 / config.bandwidth  # the fast filter modes are gone after this
-        self._prior_norm = self._normalised(self.theta_prior, self.coupling_prior)
+        self._prior_norm = self._normalised(self.theta_prior, self.coupling_prior, self.loop_prior)
         self._rows = np.tile(self._prior_norm, (n, 1, 1))  # last solution (normalised)
 
     # ---------------------------------------------------------------- layout helpers
@@ -313,21 +362,26 @@ class IvIdentifier:
         return u
 
     @staticmethod
-    def _normalised(theta: np.ndarray, coupling: np.ndarray) -> np.ndarray:
-        """Row parameters (..., 6, WIDTH) in normalised units (scale_j / target scale); the
+    def _normalised(
+        theta: np.ndarray, coupling: np.ndarray, loops: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Row parameters (..., rows, WIDTH) in normalised units (scale_j / target scale); the
         transient's coefficient is zero."""
         theta = np.asarray(theta, float)
         coupling = np.asarray(coupling, float)
         out = np.zeros((*theta.shape[:-1], N_ROWS, WIDTH))
         for p, sl in enumerate(BLOCK_SLICES):
             out[..., p, : ROW_SIZE[p]] = theta[..., sl]
-        out[..., len(BLOCKS) :, 0] = coupling
+        out[..., list(COUPLING_ROWS), 0] = coupling
+        if loops is not None:
+            out[..., list(LOOP_ROWS), :2] = loops
         return out * ROW_SCALE / TARGET_SCALE[:, None]
 
-    def _denormalise(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _denormalise(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``theta (N, 16)``, ``coupling (N, 2)``, ``loops (N, 2, 2)`` (``p1, p2`` per axis)."""
         rows = rows * TARGET_SCALE[:, None] / ROW_SCALE
         theta = np.concatenate([rows[:, p, : ROW_SIZE[p]] for p in range(len(BLOCKS))], axis=1)
-        return theta, rows[:, len(BLOCKS) :, 0].copy()
+        return theta, rows[:, list(COUPLING_ROWS), 0].copy(), rows[:, list(LOOP_ROWS), :2].copy()
 
     def _set_aux(self, which: np.ndarray) -> None:
         """Discretise the auxiliary model (exact ZOH) for the vehicles in ``which``."""
@@ -360,9 +414,9 @@ class IvIdentifier:
         self._fx = x @ self._ad_t + u[..., None] * self._bd
         if self._t < self._settle:
             return
-        phi = f[:, ROW_PHI] * self._mask  # (N, 6, 5)
-        xi = f[:, ROW_XI] * self._mask
-        y = d[:, ROW_TARGET]  # (N, 6)
+        phi = np.einsum('nc,rcw->nrw', f, PHI_MAP) * self._mask  # (N, rows, WIDTH)
+        xi = np.einsum('nc,rcw->nrw', f, XI_MAP) * self._mask
+        y = f @ Y_F_MAP.T + d @ Y_D_MAP.T  # (N, rows)
 
         # short-window statistics (always forgetting) and the excitation gate
         if active is not None and not np.all(active):
@@ -409,35 +463,54 @@ class IvIdentifier:
         """Refresh the auxiliary model and the usable model (every ``aux_period``).
 
         The auxiliary model (the instruments' generator) takes every block estimate that is
-        stable: it only has to correlate with the regressors, and waiting for a row to be declared
-        identified would starve the very measure that declares it. The usable model (what the
-        observer runs on and the predictions integrate) takes a block only when its rows are at
-        least converging and the block is stable; otherwise it keeps what it had (at first, the
-        prior), so a row without excitation never moves it; and only if an explicit step of
-        ``h`` on it is stable, since the observer integrates the model's drift explicitly.
+        stable, while the block's reference moves: it only has to correlate with the regressors,
+        and waiting for a row to be declared identified would starve the very measure that
+        declares it; with a quiet reference a model change would be all the instruments carry.
+
+        The usable model (what the observer runs on and the predictions integrate) takes, per
+        block, the full estimate when the block's rows are at least converging; for a 4th-order
+        block whose full row is not, the reduced model (:data:`ATTITUDE_LOOP`) when its position
+        loop is; otherwise it keeps what it had (at first, the prior). A candidate must be stable,
+        and stable for an explicit step of ``h`` (the observer integrates the drift explicitly).
         """
-        stable = block_is_stable(self.theta, self.coupling, margin=0.05)
-        # the observer takes the model's drift explicitly: it also has to be stable for the step
-        steppable = block_is_stable(self.theta, self.coupling, margin=0.05, step=self.h)
+        cfg = self.config
+        n = self.theta.shape[0]
         usable = self.status >= CONVERGING
-        # a new auxiliary model moves the instruments; with a quiet reference that motion would be
-        # all the instruments carry, so a block's auxiliary model only changes while its reference
-        # moves (filtered reference above QUIET RMS, normalised units)
         moving = self.reference_rms() > QUIET
+        stable = block_is_stable(self.theta, self.coupling, margin=0.05)
         for j, sl in enumerate(BLOCK_SLICES):
             ok = stable[:, j] & moving[:, j]
             self.aux_theta[ok, sl] = self.theta[ok, sl]
-            coupled = BLOCKS[j].coupling is not None
-            if coupled:
+            if BLOCKS[j].coupling is not None:
                 self.aux_coupling[ok, j] = self.coupling[ok, j]
-            ok = ok & usable[:, j] & steppable[:, j]
-            if coupled and self.config.estimate_coupling:
-                ok &= usable[:, len(BLOCKS) + j]
-            self.model_theta[ok, sl] = self.theta[ok, sl]
-            if coupled:
-                self.model_coupling[ok, j] = self.coupling[ok, j]
+        # usable model: full estimate, else the reduced loop, per block and vehicle
+        coupling = self.model_coupling.copy()
+        for k, row in enumerate(COUPLING_ROWS):
+            take = usable[:, row] if cfg.estimate_coupling else np.zeros(n, dtype=bool)
+            coupling[take, k] = self.coupling[take, k]
+        full = self.model_theta.copy()
+        reduced = self.model_theta.copy()
+        use_full = np.zeros((n, len(BLOCKS)), dtype=bool)
+        use_reduced = np.zeros((n, len(BLOCKS)), dtype=bool)
+        for j, sl in enumerate(BLOCK_SLICES):
+            use_full[:, j] = usable[:, j]
+            full[use_full[:, j], sl] = self.theta[use_full[:, j], sl]
+            if j < len(LOOP_ROWS):
+                use_reduced[:, j] = ~usable[:, j] & usable[:, LOOP_ROWS[j]]
+                rows = loop_row(self.loops[:, j, 0], self.loops[:, j, 1])
+                reduced[use_reduced[:, j], sl] = rows[use_reduced[:, j]]
+        candidate = np.where(np.repeat(use_full, [b.n_params for b in BLOCKS], axis=1), full,
+                             reduced)  # fmt: skip
+        ok = block_is_stable(candidate, coupling, margin=0.05, step=self.h)
+        ok &= use_full | use_reduced
+        for j, sl in enumerate(BLOCK_SLICES):
+            self.model_theta[ok[:, j], sl] = candidate[ok[:, j], sl]
+            if j < len(COUPLING_ROWS):
+                self.model_coupling[ok[:, j], j] = coupling[ok[:, j], j]
+        self.model_kind = np.where(ok & use_full, 'full', np.where(ok, 'reduced',
+                                                                    self.model_kind))  # fmt: skip
         if np.any(stable):
-            self._set_aux(np.ones(self.theta.shape[0], dtype=bool))
+            self._set_aux(np.ones(n, dtype=bool))
 
     def reference_rms(self) -> np.ndarray:
         """RMS of each block's filtered reference over the short window (N, 4), normalised."""
@@ -460,7 +533,7 @@ class IvIdentifier:
         rows = np.linalg.solve(lhs, rhs[..., None])[..., 0]
         rows = np.where(self._mask, rows, self._prior_norm)
         self._rows = rows
-        self.theta, self.coupling = self._denormalise(rows)
+        self.theta, self.coupling, self.loops = self._denormalise(rows)
 
     def _update_excitation(self) -> None:
         """Canonical correlations, uncertainty and status of every row (every 0.1 s)."""
@@ -468,7 +541,7 @@ class IvIdentifier:
         n = self.theta.shape[0]
         exc = np.zeros((n, N_ROWS))
         unc = np.full((n, N_ROWS), np.inf)
-        rows = self._normalised(self.theta, self.coupling)
+        rows = self._rows  # the current solution, normalised
         sigma2 = self.res2 / max(self.weight_e, 1e-12)  # mean residual power
         # correlation time of the filtered residual; 4/lambda calibrated against the spread of
         # estimates over noise seeds (docs/identifier.md)
@@ -509,7 +582,7 @@ class IvIdentifier:
             NOT_IDENTIFIABLE
         )
         if not cfg.estimate_coupling:
-            status[:, len(BLOCKS) :] = IDENTIFIED  # known (fixed) coupling
+            status[:, list(COUPLING_ROWS)] = IDENTIFIED  # known (fixed) coupling
         self.status = status
 
     @property

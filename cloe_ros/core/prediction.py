@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import expm
 
-from cloe_ros.core.model import N_REFERENCES, N_STATES, system_matrices, unstable_blocks
+from cloe_ros.core.model import BLOCKS, N_REFERENCES, N_STATES, system_matrices, unstable_blocks
 from cloe_ros.errors import ConfigError
 
 NS = 1_000_000_000
@@ -66,6 +66,8 @@ class Predictor:
         self._ad = np.eye(N_STATES)
         self._bd = np.zeros((N_STATES, N_REFERENCES))
         self._stable = False
+        self._gains_key: bytes | None = None
+        self._gains = np.ones(N_REFERENCES)
 
     def _discretise(self, theta: np.ndarray, coupling: np.ndarray) -> bool:
         key = np.concatenate([theta, coupling]).tobytes()
@@ -78,6 +80,22 @@ class Predictor:
             e = expm(m * self.config.step)
             self._ad, self._bd = e[:N_STATES, :N_STATES], e[:N_STATES, N_STATES:]
         return self._stable
+
+    def static_gains(self, theta: np.ndarray, coupling: np.ndarray) -> np.ndarray:
+        """Steady-state position (yaw) per unit reference, for each reference channel (4,)."""
+        key = np.concatenate([theta, coupling]).tobytes()
+        if key != self._gains_key:
+            a, b = system_matrices(np.asarray(theta, float), np.asarray(coupling, float))
+            gains = np.ones(N_REFERENCES)
+            for block in BLOCKS:
+                idx = np.array(block.states)
+                try:
+                    x_ss = -np.linalg.solve(a[np.ix_(idx, idx)], b[idx, block.reference])
+                    gains[block.reference] = x_ss[0]
+                except np.linalg.LinAlgError:
+                    gains[block.reference] = np.nan
+            self._gains_key, self._gains = key, gains
+        return self._gains
 
     def predict(
         self,

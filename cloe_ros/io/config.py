@@ -147,7 +147,10 @@ def load_settings(path: str | Path, node_name: str = 'cloe_inference') -> dict[s
         msg = f'cannot read {path}: {err.strerror or err}'
         raise SettingsError(msg) from err
     except yaml.YAMLError as err:
-        msg = f'{path} is not valid YAML: {err}'
+        mark = getattr(err, 'problem_mark', None)
+        where = f' (line {mark.line + 1}, column {mark.column + 1})' if mark else ''
+        problem = getattr(err, 'problem', None) or str(err).splitlines()[0]
+        msg = f'{path} is not valid YAML{where}: {problem}'
         raise SettingsError(msg) from err
     if data is None:
         return {}

@@ -78,6 +78,8 @@ class EstimatorConfig:
         sm_gains: Sliding-mode gains alpha per state (12,), used by ``cloe_sm``.
         sm_exponents: Sliding-mode exponents p per state (12,), 0 <= p < 1.
         l_leak: ``cloe_iv`` only: leakage sigma of ``l' = gamma e^2 - sigma (l - l_min)``, 1/s.
+        gamma_d: ``cloe_iv`` only: rate of the observer's model-error state on the unknown rows,
+            ``d' = gamma_d e_last - sigma d`` (1/s^2).
         l_min: ``cloe_iv`` only: lower bound of L, 1/s.
         l_max: ``cloe_iv`` only: upper bound of L, 1/s.
         identifier: ``cloe_iv`` only: settings of the IV identifier.
@@ -94,6 +96,7 @@ class EstimatorConfig:
     sm_gains: tuple[float, ...] = field(default=SM_GAINS_TABLE1)
     sm_exponents: tuple[float, ...] = field(default=SM_EXPONENTS)
     l_leak: float = 0.1
+    gamma_d: float = 400.0
     l_min: float = 5.0
     l_max: float = 50.0
     identifier: IdentifierConfig = field(default_factory=IdentifierConfig)
@@ -112,7 +115,7 @@ class EstimatorConfig:
         if not np.isfinite(self.ground_altitude):
             msg = f'ground_altitude must be finite, got {self.ground_altitude!r}'
             raise ConfigError(msg)
-        for name in ('gamma_theta', 'gamma_l', 'l_initial', 'l_leak'):
+        for name in ('gamma_theta', 'gamma_l', 'l_initial', 'l_leak', 'gamma_d'):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0:
                 msg = f'{name} must be finite and >= 0, got {value!r}'

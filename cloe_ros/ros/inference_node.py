@@ -161,6 +161,9 @@ class InferenceNode(Node):
                 **ro)),
             ('l_leak', DEFAULTS['l_leak'], describe(
                 'cloe_iv: leakage of the observer gain L, 1/s', float_range=(0.0, 1e3))),
+            ('gamma_d', DEFAULTS['gamma_d'], describe(
+                "cloe_iv: rate of the observer's model-error state on the unknown rows, 1/s^2",
+                float_range=(0.0, 1e6))),
             ('l_min', DEFAULTS['l_min'], describe(
                 'cloe_iv: lower bound of L, 1/s', float_range=(0.0, 1e6))),
             ('l_max', DEFAULTS['l_max'], describe(

@@ -186,7 +186,9 @@ class SimulatorNode(Node):
             ('wait_timeout', 30.0, describe('then start anyway after this many s',
                                             float_range=(0.0, 3600.0), **ro)),
             ('shutdown_when_done', False, describe('exit when the duration is over', **ro)),
-            ('qos_depth', 100, describe('QoS history depth', int_range=(1, 10000), **ro)),
+            ('qos_depth', 1000, describe(
+                'QoS history depth of the publishers (10 s of 100 Hz: a subscriber starved of CPU '
+                'for a moment loses nothing)', int_range=(1, 100000), **ro)),
         ] + [
             (f'controller.{g}', float(getattr(defaults, g)), describe(
                 f'controller gain {g} (see docs/method.md)', float_range=(0.0, 1e5), **ro))

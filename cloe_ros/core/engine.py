@@ -39,7 +39,7 @@ import numpy as np
 from cloe_ros.core.algorithms import make_estimator
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
-from cloe_ros.core.kinematics import odometry_to_state, quaternion_yaw, unwrap_near
+from cloe_ros.core.kinematics import odometry_to_state_one, quaternion_yaw, unwrap_near
 from cloe_ros.core.model import unstable_blocks
 from cloe_ros.core.prediction import PredictionConfig, Predictor
 from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
@@ -218,10 +218,12 @@ class VehicleEngine:
     def add_odometry(self, sample: OdometrySample) -> str | None:
         """Accept an odometry sample; returns the reason if it was rejected."""
         self.stats.odom_received += 1
-        values = (sample.position, sample.orientation, sample.linear, sample.angular)
-        if not all(np.all(np.isfinite(v)) for v in values):
+        values = np.concatenate(
+            (sample.position, sample.orientation, sample.linear, sample.angular)
+        )
+        if not np.isfinite(values).all():
             return self._reject('non-finite odometry')
-        if abs(np.linalg.norm(sample.orientation) - 1.0) > self.config.quaternion_tolerance:
+        if abs(math.sqrt(values[3:7] @ values[3:7]) - 1.0) > self.config.quaternion_tolerance:
             return self._reject('invalid quaternion')
         reason = self._check_frame(sample.frame_id)
         if reason:
@@ -234,7 +236,7 @@ class VehicleEngine:
             self._time_jump(sample.stamp_ns, clear_references=True)
         elif last is not None and sample.stamp_ns - last > self.config.max_gap * NS:
             self._time_jump(sample.stamp_ns, clear_references=False)
-        zeta = odometry_to_state(
+        zeta = odometry_to_state_one(
             sample.position, sample.orientation, sample.linear, sample.angular
         )
         if self._yaw is not None:
@@ -249,9 +251,10 @@ class VehicleEngine:
     def add_reference(self, sample: PoseSample) -> str | None:
         """Accept a reference sample (position and yaw); returns the reason if rejected."""
         self.stats.reference_received += 1
-        if not (np.all(np.isfinite(sample.position)) and np.all(np.isfinite(sample.orientation))):
+        q = sample.orientation
+        if not (np.isfinite(sample.position).all() and np.isfinite(q).all()):
             return self._reject('non-finite reference')
-        if abs(np.linalg.norm(sample.orientation) - 1.0) > self.config.quaternion_tolerance:
+        if abs(math.sqrt(q @ q) - 1.0) > self.config.quaternion_tolerance:
             return self._reject('invalid reference quaternion')
         reason = self._check_frame(sample.frame_id)
         if reason:
@@ -263,7 +266,9 @@ class VehicleEngine:
         if reason == '':
             self._refs.clear()
         p = sample.position
-        r = np.array([p[0], p[1], float(quaternion_yaw(sample.orientation)), p[2]])
+        x, y, z, w = (float(c) for c in q)
+        yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        r = np.array([p[0], p[1], yaw, p[2]])
         self._refs.append((sample.stamp_ns, r))
         self.stats.reference_accepted += 1
         return None

@@ -273,7 +273,8 @@ class CloeEstimator:
         n_vehicles: int | None = None,
     ) -> None:
         if isinstance(configs, EstimatorConfig):
-            configs = [configs] * (n_vehicles or 1)
+            rows = np.shape(zeta0)[0] if np.ndim(zeta0) == 2 else 1
+            configs = [configs] * (n_vehicles or rows)
         self.configs = tuple(configs)
         n = len(self.configs)
         zeta0 = np.asarray(zeta0, dtype=float)

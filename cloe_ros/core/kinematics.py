@@ -10,6 +10,8 @@ small-angle shortcut). All functions accept arrays with any leading batch shape.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from cloe_ros.core.model import N_STATES
@@ -145,3 +147,60 @@ def yaw_quaternion(yaw: np.ndarray) -> np.ndarray:
 def quaternion_yaw(q: np.ndarray) -> np.ndarray:
     """Yaw (rad) of quaternions ``(x, y, z, w)`` (..., 4)."""
     return quaternion_to_euler(q)[..., 2]
+
+
+def odometry_to_state_one(
+    position: np.ndarray, quaternion: np.ndarray, v_body: np.ndarray, w_body: np.ndarray
+) -> np.ndarray:
+    """:func:`odometry_to_state` for one sample, with scalar math (the node's hot path: about ten
+    times faster than the array version on a single sample)."""
+    x, y, z, w = (float(c) for c in quaternion)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    u, v, wv = (float(c) for c in v_body)
+    vx = cy * cp * u + (cy * sp * sr - sy * cr) * v + (cy * sp * cr + sy * sr) * wv
+    vy = sy * cp * u + (sy * sp * sr + cy * cr) * v + (sy * sp * cr - cy * sr) * wv
+    vz = -sp * u + cp * sr * v + cp * cr * wv
+    p, q, r = (float(c) for c in w_body)
+    s = q * sr + r * cr
+    return np.array([
+        position[0], vx, pitch, q * cr - r * sr,
+        position[1], vy, roll, p + s * math.tan(pitch),
+        yaw, s / cp, position[2], vz,
+    ], dtype=float)  # fmt: skip
+
+
+def state_to_odometry_one(
+    zeta: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`state_to_odometry` for one state (12,), with scalar math."""
+    x, vx, pitch, dpitch, y, vy, roll, droll, yaw, dyaw, z, vz = (float(c) for c in zeta)
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    hr, hp, hy = 0.5 * roll, 0.5 * pitch, 0.5 * yaw
+    chr_, shr = math.cos(hr), math.sin(hr)
+    chp, shp = math.cos(hp), math.sin(hp)
+    chy, shy = math.cos(hy), math.sin(hy)
+    quaternion = np.array([
+        shr * chp * chy - chr_ * shp * shy,
+        chr_ * shp * chy + shr * chp * shy,
+        chr_ * chp * shy - shr * shp * chy,
+        chr_ * chp * chy + shr * shp * shy,
+    ])  # fmt: skip
+    # body velocity = R^T v_world
+    v_body = np.array([
+        cy * cp * vx + sy * cp * vy - sp * vz,
+        (cy * sp * sr - sy * cr) * vx + (sy * sp * sr + cy * cr) * vy + cp * sr * vz,
+        (cy * sp * cr + sy * sr) * vx + (sy * sp * cr - cy * sr) * vy + cp * cr * vz,
+    ])  # fmt: skip
+    w_body = np.array([
+        droll - dyaw * sp, dpitch * cr + dyaw * cp * sr, -dpitch * sr + dyaw * cp * cr
+    ])  # fmt: skip
+    return np.array([x, y, z]), quaternion, v_body, w_body

@@ -14,7 +14,7 @@ import numpy as np
 
 from cloe_ros.core.engine import NS, Estimate
 from cloe_ros.core.identifier import ROW_NAMES
-from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry
+from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry_one
 from cloe_ros.core.model import COUPLED_BLOCKS, PARAMETER_NAMES, STATE_NAMES
 from cloe_ros.core.samples import OdometrySample, PathSample
 from cloe_ros.errors import CloeError
@@ -127,7 +127,7 @@ class OutputEncoder:
 
 def encode_state(estimate: Estimate, world_frame: str, child_frame: str) -> bytes:
     """``cloe/state``: the estimated state as Odometry (pose in world, twist in body, REP-105)."""
-    position, quaternion, v_body, w_body = state_to_odometry(estimate.zeta_hat)
+    position, quaternion, v_body, w_body = state_to_odometry_one(estimate.zeta_hat)
     return encode_odometry(
         OdometrySample(
             estimate.stamp_ns, world_frame, child_frame, position, quaternion, v_body, w_body

@@ -87,3 +87,22 @@ def test_yaw_unwrapping_is_continuous_across_pi():
     for a in raw[1:]:
         unwrapped.append(unwrap_near(a, unwrapped[-1]))
     np.testing.assert_allclose(unwrapped, np.linspace(2.5, 10.0, 400), atol=1e-12)
+
+
+def test_scalar_conversions_equal_the_array_ones():
+    """The node's single-sample fast path and the batched version agree."""
+    from cloe_ros.core.kinematics import odometry_to_state_one, state_to_odometry_one
+
+    rng = np.random.default_rng(9)
+    for _ in range(200):
+        zeta = rng.normal(size=12) * 0.6
+        zeta[8] = rng.uniform(-3.14, 3.14)
+        fast = state_to_odometry_one(zeta)
+        for a, b in zip(fast, state_to_odometry(zeta)):
+            np.testing.assert_allclose(a, b, atol=1e-12)
+        q = fast[1] * rng.uniform(0.95, 1.05)  # not quite unit, as received
+        np.testing.assert_allclose(
+            odometry_to_state_one(fast[0], q, fast[2], fast[3]),
+            odometry_to_state(fast[0], q, fast[2], fast[3]),
+            atol=1e-12,
+        )

@@ -92,32 +92,59 @@ def declare(node: Node, name: str, default, descriptor: ParameterDescriptor):
     """Declare a parameter and return its value.
 
     Friendlier than plain rclpy in two ways users hit on the command line: an integer given for a
-    floating-point parameter (``-p rate:=100``) is taken as a float, and an empty list is taken
-    for an array parameter of any type. A default of ``[]`` needs ``descriptor.type`` and declares
-    the parameter with that type (value ``[]`` when not set). Any other invalid override (type or
-    range) raises :class:`ParameterError` with rclpy's reason.
+    floating-point parameter (``-p rate:=100``) is taken as a float, and an array parameter with
+    an empty default (``descriptor.type`` gives its element type) accepts ``[]`` and is always
+    initialised (see :func:`_declare_array`). Any other invalid override (type or range) raises
+    :class:`ParameterError` with rclpy's reason.
     """
     overrides = getattr(node, '_parameter_overrides', None)
-    override = overrides.get(name) if isinstance(overrides, dict) else None
-    empty_array = isinstance(default, list) and not default
-    if override is not None:
+    if not isinstance(overrides, dict):
+        overrides = {}
+    override = overrides.get(name)
+    if override is not None and isinstance(default, float):
         value = override.value
-        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        if isinstance(value, int) and not isinstance(value, bool):
             overrides[name] = Parameter(name, Parameter.Type.DOUBLE, float(value))
-        elif isinstance(default, list) and isinstance(value, (list, tuple)) and not list(value):
-            ptype = Parameter.Type(descriptor.type) if empty_array else (
-                Parameter.Type.from_parameter_value(default))  # fmt: skip
-            overrides[name] = Parameter(name, ptype, [])
     try:
-        if empty_array:
-            value = node.declare_parameter(name, Parameter.Type(descriptor.type), descriptor).value
-            return [] if value is None else value
+        if isinstance(default, list) and not default:
+            return _declare_array(node, name, descriptor)
         return node.declare_parameter(name, default, descriptor).value
     except (
         rclpy.exceptions.InvalidParameterTypeException,
         rclpy.exceptions.InvalidParameterValueException,
     ) as err:
         raise ParameterError(f'parameter {name!r}: {err}') from err
+
+
+def _declare_array(node: Node, name: str, descriptor: ParameterDescriptor) -> list:
+    """An array parameter whose default is empty. rclpy cannot hold an empty array of a given type
+    (an empty list is a byte array to it), so it is declared with dynamic typing and the element
+    type (``descriptor.type``) is checked here."""
+    element = {
+        ParameterType.PARAMETER_STRING_ARRAY: str,
+        ParameterType.PARAMETER_DOUBLE_ARRAY: float,
+        ParameterType.PARAMETER_INTEGER_ARRAY: int,
+    }[descriptor.type]
+    declared = ParameterDescriptor()
+    declared.description = descriptor.description
+    declared.additional_constraints = descriptor.additional_constraints
+    declared.read_only = descriptor.read_only
+    declared.dynamic_typing = True
+    value = node.declare_parameter(name, [], declared).value
+    if value is None or _is_empty_sequence(value):
+        return []
+    if isinstance(value, str) or not all(isinstance(v, element) for v in value):
+        raise ParameterError(
+            f'parameter {name!r}: expected a list of {element.__name__}, got {value!r}'
+        )
+    return list(value)
+
+
+def _is_empty_sequence(value) -> bool:
+    try:
+        return not isinstance(value, str) and len(value) == 0
+    except TypeError:
+        return False
 
 
 def refuse(reason: str) -> SetParametersResult:

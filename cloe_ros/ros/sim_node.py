@@ -16,6 +16,7 @@ import time
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray
@@ -181,7 +182,8 @@ class SimulatorNode(Node):
             ('world_frame', 'world', describe('header.frame_id of odom and reference', **ro)),
             ('body_frame', 'base_link', describe('child_frame_id of odom', **ro)),
             ('wait_for_subscribers', 0, describe(
-                'wait until every odom topic has this many subscribers before starting',
+                'wait until every odom and reference topic has this many subscribers before '
+                'starting',
                 int_range=(0, 100), **ro)),
             ('wait_timeout', 30.0, describe('then start anyway after this many s',
                                             float_range=(0.0, 3600.0), **ro)),
@@ -231,7 +233,11 @@ class SimulatorNode(Node):
     def _ready(self) -> bool:
         if self.wait_for_subscribers <= 0:
             return True
-        counts = [self.pubs[(v, 'odom')].get_subscription_count() for v in self.vehicles]
+        counts = [
+            self.pubs[(v, topic)].get_subscription_count()
+            for v in self.vehicles
+            for topic in ('odom', 'reference')
+        ]
         if min(counts) >= self.wait_for_subscribers:
             return True
         if time.monotonic() - self._wait_start > self.wait_timeout:
@@ -270,7 +276,21 @@ class SimulatorNode(Node):
             self.done = True
             self.get_logger().info(f'done: {self.duration:g} s simulated')
             if self.shutdown_when_done:
+                self._wait_for_acks()
                 self.context.try_shutdown()
+
+    def _wait_for_acks(self, timeout: float = 3.5) -> None:
+        """Before exiting, let reliable subscribers acknowledge the last samples (Fast DDS asks
+        with its heartbeat, every 3 s by default); a subscriber short of CPU at the end would
+        otherwise lose them."""
+        deadline = time.monotonic() + timeout
+        for (vehicle, topic), pub in self.pubs.items():
+            remaining = max(0.0, deadline - time.monotonic())
+            if not pub.wait_for_all_acked(Duration(nanoseconds=int(remaining * NS))):
+                self.get_logger().warning(
+                    f'{vehicle or "/"} {topic}: not acknowledged by every subscriber within '
+                    f'{timeout:g} s (the last samples may not have arrived)'
+                )
 
     def _publish_samples(self) -> None:
         k = self._step

@@ -81,7 +81,8 @@ LOOP_ROWS = (6, 7)
 #: with ``p1 = k_p / c``, ``p2 = k_v / c`` (position gains over the tilt coupling). As a full row:
 #: ``[a_x, a_x_dot, a_theta, a_theta_dot, b] = [-k_a p1, -k_a p2, -k_a, -k_d, k_a p1]``.
 ATTITUDE_LOOP = (196.0, 19.6)
-#: The prior position loop: ``k_p = 4``, ``k_v = 3.2`` m/s^2 per m and per m/s (omega 2 rad/s).
+#: The prior of the reduced rows: ``k_p = 4``, ``k_v = 3.2`` m/s^2 per m and per m/s (omega 2
+#: rad/s, zeta 0.8).
 PRIOR_LOOP = (4.0, 3.2)
 WIDTH = 6  # rows are padded to 5 entries, plus the start-up transient (see _DECAY)
 
@@ -102,19 +103,33 @@ def loop_row(p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
     )
 
 
+def cascade_prior() -> tuple[np.ndarray, np.ndarray]:
+    """The model used before anything is identified: for x-theta and y-phi the reduced cascade
+    with the assumed attitude loop and the prior position loop (poles about -1.7 +- 1.0j and
+    -8.1 +- 10.4j, a more quadrotor-like response than :func:`generic_prior`'s); psi and z as
+    there."""
+    theta, coupling = generic_prior()
+    for block, sl, c in zip(BLOCKS, BLOCK_SLICES, (*PAPER_COUPLING, None, None)):
+        if block.order == 4:
+            theta[sl] = loop_row(PRIOR_LOOP[0] / c, PRIOR_LOOP[1] / c)
+    return theta, coupling
+
+
 def generic_prior() -> tuple[np.ndarray, np.ndarray]:
     """A generic stable closed loop with unit static gain: the identifier's prior.
 
-    x-theta and y-phi: the reduced cascade with the assumed attitude loop and the prior position
-    loop (poles about -1.7 +- 1.0j and -8.1 +- 10.4j); psi and z: -5 +- 5j. Returns ``(theta (16,),
+    x-theta and y-phi: poles -1.5 +- 1j and -6 +- 6j; psi and z: -5 +- 5j. Returns ``(theta (16,),
     coupling (2,))`` with the couplings at +g and -g. It only decides what the model is in
-    directions the data have not excited yet.
+    directions the data have not excited yet, and it generates the first instruments. (The reduced
+    cascade of ``ATTITUDE_LOOP`` was tried as this prior: as first instruments it made the y-phi
+    estimate 60-170 % off for a minute with measurement noise, against 0.3-3 % with this one.)
     """
     theta = []
     for block in BLOCKS:
         if block.order == 4:
+            p = np.poly([-1.5 + 1j, -1.5 - 1j, -6 + 6j, -6 - 6j]).real
             g = block.coupling
-            theta += list(loop_row(PRIOR_LOOP[0] / g, PRIOR_LOOP[1] / g))
+            theta += [-p[4] / g, -p[3] / g, -p[2], -p[1], p[4] / g]
         else:
             p = np.poly([-5 + 5j, -5 - 5j]).real
             theta += [-p[2], -p[1], p[2]]
@@ -314,7 +329,9 @@ class IvIdentifier:
         self._aux_bd = np.zeros((n, N_STATES, N_REFERENCES))
         self.aux_theta = self.theta.copy()
         self.aux_coupling = self.coupling.copy()
-        self.model_theta = self.theta.copy()  # the usable model (see _update_model)
+        # the usable model (see _update_model): at first the cascade prior, unless a prior is given
+        start = cascade_prior()[0] if theta_prior is None else self.theta_prior
+        self.model_theta = np.tile(start, (n, 1))
         self.model_coupling = self.coupling.copy()
         self.model_kind = np.full((n, len(BLOCKS)), 'prior')  # per block: prior|reduced|full
         self._set_aux(np.ones(n, dtype=bool))

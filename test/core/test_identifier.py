@@ -21,7 +21,7 @@ from cloe_ros.core.identifier import (
     NOT_IDENTIFIABLE,
     IdentifierConfig,
     IvIdentifier,
-    generic_prior,
+    cascade_prior,
 )
 from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
 from cloe_ros.core.metrics import parameter_error
@@ -163,7 +163,7 @@ def test_without_excitation_every_row_is_reported_not_identifiable():
     assert np.all(ident.status[0] == NOT_IDENTIFIABLE), ident.status
     assert np.all(ident.excitation[0] < 0.02)
     # and the model used for observing and predicting stays the prior
-    prior_theta, prior_coupling = generic_prior()
+    prior_theta, prior_coupling = cascade_prior()
     np.testing.assert_array_equal(ident.model_theta[0], prior_theta)
     np.testing.assert_array_equal(ident.model_coupling[0], prior_coupling)
 

@@ -116,7 +116,8 @@ def format_prediction(score: PredictionScore, label: str) -> str:
         f'[{score.t_from:.0f}, {score.t_to:.0f}] s; {score.withheld} withheld)',
         f'    {"horizon":>8} {"model":>9}'
         + (f' {"true model":>11}' if score.true_model is not None else '')
-        + f' {"const. vel.":>11} {"hold pos.":>10} {"vs CV":>7} {"vs hold":>8}',
+        + f' {"const. vel.":>11} {"hold pos.":>10} {"vs CV":>7} {"vs hold":>8}'
+        + '   model along x / y / z',
     ]
     for j, h in enumerate(score.horizons):
         row = f'    {h:>7g}s {score.model[j]:>9.4f}'
@@ -125,6 +126,8 @@ def format_prediction(score: PredictionScore, label: str) -> str:
         row += f' {score.constant_velocity[j]:>11.4f} {score.hold_position[j]:>10.4f}'
         row += f' {score.constant_velocity[j] / score.model[j]:>6.1f}x'
         row += f' {score.hold_position[j] / score.model[j]:>7.1f}x'
+        if score.model_per_axis is not None:
+            row += '   ' + ' / '.join(f'{v:.3f}' for v in score.model_per_axis[j])
         lines.append(row)
     return '\n'.join(lines)
 
@@ -133,6 +136,9 @@ def _score_dict(score: PredictionScore) -> dict:
     return {
         'horizons_s': list(score.horizons),
         'model': score.model.tolist(),
+        'model_per_axis_xyz': None
+        if score.model_per_axis is None
+        else (score.model_per_axis.tolist()),
         'true_model': None if score.true_model is None else score.true_model.tolist(),
         'constant_velocity': score.constant_velocity.tolist(),
         'hold_position': score.hold_position.tolist(),

@@ -37,6 +37,7 @@ class PredictionScore:
     withheld: int
     t_from: float
     t_to: float
+    model_per_axis: np.ndarray | None = None  # (horizons, 3): the model's RMSE along x, y, z
 
 
 @dataclass
@@ -158,6 +159,7 @@ def score_predictions(
     keep = [i for i, t0 in enumerate(run.pred_t) if t_from <= t0 <= t_to]
     k_of = [round(h / step) for h in horizons]
     sq = {name: [[] for _ in horizons] for name in ('model', 'cv', 'hold', 'true')}
+    per_axis: list[list[np.ndarray]] = [[] for _ in horizons]
     truth_predictor = None
     if true_model is not None:
         n = max(k_of)
@@ -185,7 +187,9 @@ def score_predictions(
         for j, k in enumerate(k_of):
             if k > len(states) or not np.all(np.isfinite(actual[j])):
                 continue
-            sq['model'][j].append(np.sum((states[k - 1][[0, 4, 10]] - actual[j]) ** 2))
+            err2 = (states[k - 1][[0, 4, 10]] - actual[j]) ** 2
+            sq['model'][j].append(np.sum(err2))
+            per_axis[j].append(err2)
             sq['cv'][j].append(np.sum((cv[j] - actual[j]) ** 2))
             sq['hold'][j].append(np.sum((hold[j] - actual[j]) ** 2))
             if true_states is not None:
@@ -193,6 +197,9 @@ def score_predictions(
 
     def rmse(name):
         return np.array([np.sqrt(np.mean(v)) if v else np.nan for v in sq[name]])
+
+    def axis_rmse(squares):
+        return np.sqrt(np.mean(squares, axis=0)) if squares else np.full(3, np.nan)
 
     return PredictionScore(
         horizons=horizons,
@@ -204,6 +211,7 @@ def score_predictions(
         withheld=run.withheld,
         t_from=t_from,
         t_to=float(min(t_to, run.pred_t[-1])) if len(run.pred_t) else t_from,
+        model_per_axis=np.array([axis_rmse(v) for v in per_axis]),
     )
 
 

@@ -47,6 +47,12 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # rclpy's shutdown race (ros2/rclpy#398): a signal can shut the context down while the
+        # executor builds its wait set, which raises RCLError (a RuntimeError) instead of
+        # ExternalShutdownException. After a shutdown that is the end of spinning, not a failure.
+        if rclpy.ok():
+            raise
     except ParameterError as err:
         print(f'ERROR: {err}', file=sys.stderr)
         status = 1

@@ -116,7 +116,7 @@ def record_input_bag(ros, bag: Path) -> None:
         'noise_position': 0.002, 'noise_velocity': 0.01, 'noise_angle': 0.002,
         'noise_rate': 0.01,
     })  # fmt: skip
-    gated = gate(ros.node, recorder, sim, topics)  # the 2nd /odom subscriber, once all are heard
+    gated = gate(ros.node, recorder, sim, topics)  # the 2nd subscribers, once all are heard
     wait_for_lines(sim, 'done: ', timeout=DURATION + 60.0)
     wait_for_counts(ros, dict.fromkeys(topics, N_INPUT))
     statuses = interrupt({'bag_recorder': recorder, 'quadrotor_sim': sim})

@@ -8,14 +8,14 @@ and the inferred states against the simulator's noise-free ``ground_truth``.
 
 Waiting is on conditions, never on sleeps: log lines (``ready:``, ``recording <topic> (``,
 ``started``, ``done:``), the simulator's ``wait_for_subscribers`` (it starts once every ``odom``
-has that many subscriptions) and the recorder's ``/diagnostics`` counts, heard by a subscriber in
-this process. What could lose messages, and how it is ruled out:
+and ``reference`` has that many subscriptions) and the recorder's ``/diagnostics`` counts, heard
+by a subscriber in this process. What could lose messages, and how it is ruled out:
 
-* the start: the simulator counts only ``odom`` subscriptions, and the recorder subscribes topic
-  by topic, alphabetically, 4-35 ms apart, while the simulator started as soon as 40 ms after the
-  recorder's ``/odom`` subscription; so it waits for one more ``odom`` subscription than the
-  nodes make, this process's, created once the recorder has subscribed to every simulator topic
-  (:func:`gate`);
+* the start: the simulator counts only ``odom`` and ``reference`` subscriptions, and the
+  recorder subscribes topic by topic, alphabetically, 4-35 ms apart, while the simulator started
+  as soon as 40 ms after the recorder's ``/odom`` subscription; so it waits for one more
+  subscription on each than the nodes make, this process's, created once the recorder has
+  subscribed to every simulator topic (:func:`gate`);
 * a node falling behind: every history (``qos_depth``) holds more than a whole flight, so a
   reliable writer never drops what a slow reader has not acknowledged (with the simulator's
   depth at 100, its default before e32b90c, a recorder stalled under a full-suite load lost 14
@@ -51,6 +51,7 @@ import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from nav_msgs.msg import Odometry
@@ -172,11 +173,11 @@ def fly(system, subscribers: int, sim_params: dict, inference: dict[str, dict],
 
     The recorder and the inference nodes start first; the simulator once the recorder has
     subscribed to every inference output (so it records them from the first message), and it waits
-    for ``subscribers`` subscriptions on each ``odom`` and the gate's (:func:`gate`). The nodes
-    are stopped with SIGINT (all must exit with status 0) once the recorder has received every
-    sample of every simulator topic and one state per odometry sample from each inference node,
-    and its counts have not changed for a report period (1 s: the last parameters and
-    predictions are in)."""
+    for ``subscribers`` subscriptions on each ``odom`` and ``reference``, and the gate's
+    (:func:`gate`). The nodes are stopped with SIGINT (all must exit with status 0) once the
+    recorder has received every sample of every simulator topic and one state per odometry sample
+    from each inference node, and its counts have not changed for a report period (1 s: the last
+    parameters and predictions are in)."""
     recorder = system.start('bag_recorder', {
         'output': str(system.bag), 'topics': topics, 'qos_depth': DEPTH, **(recorder_params or {})
     })  # fmt: skip
@@ -218,15 +219,17 @@ def fly(system, subscribers: int, sim_params: dict, inference: dict[str, dict],
 
 def gate(node, recorder: NodeProcess, sim: NodeProcess, topics: list[str]) -> list:
     """Once the recorder has subscribed to every simulator topic in ``topics``, subscribe to each
-    ``odom`` in ``node``: the last subscription the simulator waits for. Returns the
-    subscriptions (never spun while the simulator runs; their queue holds a whole flight)."""
+    ``odom`` and ``reference`` in ``node``: the last subscriptions the simulator waits for (it
+    counts both). Returns the subscriptions (never spun while the simulator runs; their queue
+    holds a whole flight)."""
     names = ('odom', 'reference', 'ground_truth', 'true_parameters')
     from_sim = [t for t in topics if t.rsplit('/', 1)[-1] in names]
     wait_for_lines(recorder, *[f'recording {t} (' for t in from_sim])
+    types = {'odom': Odometry, 'reference': PoseStamped}
     subs = [
-        node.create_subscription(Odometry, t, lambda _: None, qos(depth=DEPTH), raw=True)
+        node.create_subscription(types[name], t, lambda _: None, qos(depth=DEPTH), raw=True)
         for t in topics
-        if t.endswith('/odom')
+        if (name := t.rsplit('/', 1)[-1]) in types
     ]
     wait_for_lines(sim, 'started')
     return subs
@@ -450,8 +453,9 @@ def test_two_vehicles(system) -> None:
     """``vehicles: [/uav1, /uav2]`` on both nodes: each vehicle's state tracks its own vehicle (the
     simulator places them ``spacing`` = 2 m apart in y)."""
     vehicles = ['/uav1', '/uav2']
-    topics = [f'{v}/{name}' for v in vehicles for name in ('odom', 'ground_truth', 'cloe/state')]
-    # each /uavN/odom has two subscribers: the inference node and the recorder
+    names = ('odom', 'reference', 'ground_truth', 'cloe/state')
+    topics = [f'{v}/{name}' for v in vehicles for name in names]
+    # each /uavN/odom and /uavN/reference has two subscribers: the inference node and the recorder
     fly(system, 2, {'vehicles': vehicles},
         {'cloe_inference': {'vehicles': vehicles}}, topics)  # fmt: skip
     bag = read_bag(system.bag)

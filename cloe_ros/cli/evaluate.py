@@ -25,6 +25,7 @@ from cloe_ros.core.evaluation import (
     parameter_error_over_time,
     run_engine,
     score_predictions,
+    status_calibration,
 )
 from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.core.model import BLOCKS, PAPER_COUPLING, unstable_blocks
@@ -227,6 +228,15 @@ def run_sim(args) -> int:
                                                for b in [*BLOCK_NAMES, 'all']))  # fmt: skip
         for line in _identification_summary(run):
             print(line)
+        calibration = None if run.status is None else status_calibration(run, theta_true)
+        if calibration is not None:
+            print('  time reported identified / of it more than 10 % off / largest error while '
+                  'reported identified:')  # fmt: skip
+            print('    ' + ', '.join(
+                f"{b} {100 * c['identified']:.0f} % / {100 * c['identified_but_wrong']:.0f} % / "
+                + ('-' if np.isnan(c['max_error_identified'])
+                   else f"{100 * c['max_error_identified']:.1f} %")
+                for b, c in calibration.items()))  # fmt: skip
         score = score_predictions(run, truth_t, truth, step, HORIZONS, t_from=args.score_from,
                                   true_model=(theta_true, PAPER_COUPLING))  # fmt: skip
         print(format_prediction(score, f'reference held, from t >= {args.score_from:g} s'))
@@ -248,6 +258,8 @@ def run_sim(args) -> int:
             'L_max': float(np.max(run.gain_l)),
             'theta_hat_abs_max': float(np.max(np.abs(run.theta_hat))),
         }
+        if calibration is not None:
+            entry['status_calibration'] = calibration
         if args.segments > 0:
             print(f'  per {args.segments:g} s segment (RMSE model / const. vel. / hold at 2 s and '
                   '5 s; L max; |Theta_hat| max):')  # fmt: skip

@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cloe_ros.core.engine import NS, EngineConfig, Estimate, VehicleEngine
+from cloe_ros.core.identifier import IDENTIFIED, ROW_NAMES
 from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
 from cloe_ros.core.metrics import parameter_error
-from cloe_ros.core.model import PAPER_COUPLING
+from cloe_ros.core.model import BLOCKS, PAPER_COUPLING
 from cloe_ros.core.prediction import PredictionConfig, Predictor, constant_velocity, hold_position
 from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
 
@@ -49,7 +50,7 @@ class Run:
     theta_hat: np.ndarray  # (T, 16)
     coupling: np.ndarray  # (T, 2)
     gain_l: np.ndarray  # (T, 12)
-    status: np.ndarray | None  # (T, 6) or None
+    status: np.ndarray | None  # (T, N_ROWS) or None
     excitation: np.ndarray | None
     pred_t: np.ndarray  # issue times (P,), s
     pred_states: list[np.ndarray]  # (n, 12) each
@@ -226,6 +227,28 @@ def parameter_error_over_time(
         i = int(np.argmin(np.abs(run.t - tq)))
         errors = parameter_error(run.theta_hat[i], theta_true)
         out[float(tq)] = {k: float(v) for k, v in errors.items()}
+    return out
+
+
+def status_calibration(
+    run: Run, theta_true: np.ndarray, wrong: float = 0.10
+) -> dict[str, dict[str, float]]:
+    """How far to trust an "identified" status: per block, over the recorded estimates, the
+    fraction of the run in which the block's row was reported identified, the fraction in which
+    it was reported identified while its error exceeded ``wrong``, and the largest error while
+    reported identified (NaN if never). Needs a run with an identifier (``run.status``)."""
+    if run.status is None:
+        raise ValueError(f'{run.algorithm} has no identifier status to calibrate')
+    errors = parameter_error(run.theta_hat, theta_true)
+    out = {}
+    for block in BLOCKS:
+        said = run.status[:, ROW_NAMES.index(block.name)] == IDENTIFIED
+        err = errors[block.name]
+        out[block.name] = {
+            'identified': float(np.mean(said)),
+            'identified_but_wrong': float(np.mean(said & (err > wrong))),
+            'max_error_identified': float(np.max(err[said])) if np.any(said) else float('nan'),
+        }
     return out
 
 

@@ -44,6 +44,12 @@ def test_evaluate_sim_identifies_and_predicts_like_the_true_model(tmp_path, caps
     assert set(errors) == {'10.0', '20.0', '30.0', '40.0'}  # the table's times and the end
     # every block within 5 % of the simulator's true linearisation after 30 s
     assert max(errors['30.0'][b] for b in ('x_theta', 'y_phi', 'psi', 'z')) < 0.05
+    # without noise, a block said to be identified is within 10 % of the truth the whole time
+    calibration = result['status_calibration']
+    assert set(calibration) == {'x_theta', 'y_phi', 'psi', 'z'}
+    assert all(c['identified_but_wrong'] == 0.0 for c in calibration.values())
+    assert all(c['identified'] > 0.5 for c in calibration.values())
+    assert 'reported identified' in printed
     for key in ('prediction', 'prediction_whole_run', 'prediction_with_plan'):
         check_score(result[key])
     plan = result['prediction_with_plan']

@@ -105,6 +105,10 @@ class Estimate:
         prediction: Anticipated path, when one is due: stamps (n,) ns and states (n, 12).
         prediction_status: ``PREDICTION_*`` code of the last prediction decision.
         prediction_note: Why, in words.
+        model: The model the observer runs on and the predictions integrate, ``(theta (16,),
+            coupling (2,))``: for ``cloe_iv`` the identifier's usable model (stable, from rows
+            at least converging, else the prior), which differs from ``theta_hat`` while that is
+            not usable; for the paper's algorithms ``theta_hat`` and ``coupling`` themselves.
 
     """
 
@@ -119,6 +123,7 @@ class Estimate:
     prediction: tuple[np.ndarray, np.ndarray] | None = None
     prediction_status: int = 0
     prediction_note: str = ''
+    model: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def error(self) -> np.ndarray:
@@ -457,6 +462,7 @@ class VehicleEngine:
     def _estimate(self, t_ns: int, zeta: np.ndarray, r: np.ndarray) -> Estimate:
         est = self._est
         ident = getattr(est, 'identifier', None)
+        model_theta, model_coupling = est.model
         e = Estimate(
             t_ns,
             est.zeta_hat[0].copy(),
@@ -467,6 +473,7 @@ class VehicleEngine:
             coupling=est.coupling[0].copy(),
             identification=None if ident is None else (
                 ident.excitation[0].copy(), ident.uncertainty[0].copy(), ident.status[0].copy()),
+            model=(model_theta[0].copy(), model_coupling[0].copy()),
         )  # fmt: skip
         self.stats.steps += 1
         self.stats.last_stamp_ns = t_ns

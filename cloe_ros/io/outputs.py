@@ -30,7 +30,9 @@ from cloe_ros.io.messages import (
 #: Labels of ``cloe/parameters``: ``layout.dim[i].label`` names ``data[i]``. Theta_hat (16),
 #: L (12), the tilt couplings (2), then per identified row its excitation, relative uncertainty
 #: and status (0 not identifiable, 1 converging, 2 identified; NaN / -1 when the algorithm does not
-#: measure them), and the status of the last prediction (0 withheld, 1 provisional, 2 identified).
+#: measure them), the status of the last prediction (0 withheld, 1 provisional, 2 identified), and
+#: the model the observer runs on and the predictions integrate (``model.theta.*`` (16),
+#: ``model.coupling.*`` (2); see :attr:`~cloe_ros.core.engine.Estimate.model`).
 PARAMETER_LABELS: tuple[str, ...] = tuple(
     [f'theta_hat.{name}' for name in PARAMETER_NAMES]
     + [f'L.{name}' for name in STATE_NAMES]
@@ -39,6 +41,8 @@ PARAMETER_LABELS: tuple[str, ...] = tuple(
     + [f'uncertainty.{row}' for row in ROW_NAMES]
     + [f'status.{row}' for row in ROW_NAMES]
     + ['prediction.status']
+    + [f'model.theta.{name}' for name in PARAMETER_NAMES]
+    + [f'model.coupling.{b.name}' for b in COUPLED_BLOCKS]
 )
 
 
@@ -147,9 +151,13 @@ def parameter_vector(estimate: Estimate, prediction_status: int = 0) -> np.ndarr
         estimate.coupling if estimate.coupling is not None
         else np.array([b.coupling for b in COUPLED_BLOCKS])
     )  # fmt: skip
-    return np.concatenate(
-        [estimate.theta_hat, estimate.gain_l, coupling, ident, [float(prediction_status)]]
+    model_theta, model_coupling = (
+        estimate.model if estimate.model is not None else (estimate.theta_hat, coupling)
     )
+    return np.concatenate([
+        estimate.theta_hat, estimate.gain_l, coupling, ident, [float(prediction_status)],
+        model_theta, model_coupling,
+    ])  # fmt: skip
 
 
 def encode_parameters(estimate: Estimate, prediction_status: int = 0) -> bytes:

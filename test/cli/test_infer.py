@@ -24,6 +24,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from cloe_ros.cli.main import main
+from cloe_ros.core.model import unstable_blocks
 from cloe_ros.core.samples import PoseSample
 from cloe_ros.io import messages
 from cloe_ros.io.config import DEFAULTS
@@ -358,6 +359,15 @@ def test_outputs_of_the_contract(inferred):
     for msg in params:
         assert tuple(d.label for d in msg.layout.dim) == PARAMETER_LABELS
         assert len(msg.data) == len(PARAMETER_LABELS)
+    # the model the predictions integrate is stable in every message, even while the raw estimate
+    # of a row is not (its first seconds)
+    values = [dict(zip(PARAMETER_LABELS, msg.data)) for msg in params]
+    raw_unstable = 0
+    for v in values:
+        model = labelled(v, 'model.theta.'), labelled(v, 'model.coupling.')
+        assert unstable_blocks(*model) == []
+        raw_unstable += bool(unstable_blocks(labelled(v, 'theta_hat.'), labelled(v, 'coupling.')))
+    assert raw_unstable > 0
 
     # prediction: paths issued at estimate times, poses stamped after the header, within 5 s
     predictions = decoded(out, '/cloe/prediction')
@@ -459,6 +469,9 @@ def test_algorithm_option(sim_bag, default_output, tmp_path, capsys):
     assert set(labelled(iv, 'status.')) <= {0.0, 1.0, 2.0}
     theta_sm, theta_iv = labelled(sm, 'theta_hat.'), labelled(iv, 'theta_hat.')
     assert np.abs(theta_sm - theta_iv).max() > 1.0
+    # the paper's algorithms run on their own estimate: the published model is Theta_hat
+    np.testing.assert_array_equal(labelled(sm, 'model.theta.'), theta_sm)
+    np.testing.assert_array_equal(labelled(sm, 'model.coupling.'), labelled(sm, 'coupling.'))
     assert len(decoded(out, '/cloe/state')) == len(decoded(default_output, '/cloe/state'))
 
 

@@ -364,6 +364,23 @@ def flight_states_figure(vehicle, names: dict[str, str], path: Path) -> Path:
     return _save(fig, path)
 
 
+def model_columns(output) -> list[int] | None:
+    """Columns of ``model.theta.*`` in an output's parameters, in ``PARAMETER_NAMES`` order; None
+    when the output has none (older bags) or the model never differs from Theta_hat (the paper's
+    algorithms run on their own estimate)."""
+    index = {label: i for i, label in enumerate(output.labels)}
+    try:
+        columns = [index[f'model.theta.{name}'] for name in PARAMETER_NAMES]
+    except KeyError:
+        return None
+    values = output.parameters.values
+    if values.shape[1] != len(output.labels) or np.array_equal(
+        values[:, columns], values[:, : len(PARAMETER_NAMES)], equal_nan=True
+    ):
+        return None
+    return columns
+
+
 def flight_parameters_figure(vehicle, names: dict[str, str], path: Path) -> Path | None:
     """The 16 identified parameters over time per block (symlog axis), the truth dotted in the
     same colour when the bag has it; outputs told apart by line style. None without parameters."""
@@ -378,6 +395,7 @@ def flight_parameters_figure(vehicle, names: dict[str, str], path: Path) -> Path
         return None
     t0 = vehicle.odom.t_ns[0]
     truth = vehicle.true_parameters
+    models = {n: model_columns(vehicle.outputs[n]) for n in have}
     fig, axes = plt.subplots(4, 1, figsize=(11, 12), sharex=True, layout='constrained')
     for ax, block, sl in zip(axes, BLOCKS, BLOCK_SLICES):
         for j in range(sl.start, sl.stop):
@@ -386,6 +404,9 @@ def flight_parameters_figure(vehicle, names: dict[str, str], path: Path) -> Path
                 par = vehicle.outputs[name].parameters
                 t = (par.t_ns - t0) * 1e-9
                 s = _stride(len(t))
+                if models[name] is not None:
+                    ax.plot(t[s], par.values[s, models[name][j]], '-', color=color, alpha=0.3,
+                            linewidth=4.0, solid_capstyle='butt')  # fmt: skip
                 ax.plot(
                     t[s],
                     par.values[s, j],
@@ -412,6 +433,11 @@ def flight_parameters_figure(vehicle, names: dict[str, str], path: Path) -> Path
         )
         for k, n in enumerate(have)
     ]
+    keys += [
+        plt.Line2D([], [], color='k', alpha=0.3, linewidth=4.0,
+                   label=f'{names[n]}: model in use (observer, predictions)')
+        for n in have if models[n] is not None
+    ]  # fmt: skip
     if truth is not None:
         keys.append(
             plt.Line2D([], [], color='k', linestyle=':', label='true (hover linearization)')

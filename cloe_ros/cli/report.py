@@ -472,7 +472,9 @@ def _caption(kind: str, vehicle: VehicleData) -> str:
         'states': 'Position and attitude over time: reference (grey, steps), measured (black), '
         'inferred (dashed).',
         'parameters': 'Identified parameters Θ̂ per block over time (symlog axis), one colour '
-        f'per parameter; {dotted}.',
+        f'per parameter; {dotted}. A wide pale line in the same colour, where an output has it: '
+        'the model the observer and the predictions were using (cloe_iv keeps its last stable, '
+        'usable model while Θ̂ is far off).',
         'parameter_error': 'Relative parameter error per block over time against the true '
         'values; 100 % is no better than Θ̂ = 0.',
         'path': 'Top view, a zoom where the inferred path is farthest from the actual one (red '

@@ -21,8 +21,10 @@ from bag_fixtures import (
 
 from cloe_ros.cli.infer import infer_bag
 from cloe_ros.cli.main import main
+from cloe_ros.cli.plots import model_columns
 from cloe_ros.cli.report import prediction_rmse
 from cloe_ros.core.kinematics import odometry_to_state
+from cloe_ros.core.model import PARAMETER_NAMES
 from cloe_ros.core.samples import OdometrySample
 from cloe_ros.core.simulator import (
     SCENARIOS,
@@ -31,7 +33,7 @@ from cloe_ros.core.simulator import (
     QuadrotorSimulator,
 )
 from cloe_ros.io import messages
-from cloe_ros.io.dataset import Predictions, Series
+from cloe_ros.io.dataset import Predictions, Series, load_flight
 from cloe_ros.io.reader import BagReader
 from cloe_ros.io.writer import BagWriter
 
@@ -403,3 +405,16 @@ def test_bad_rate_is_refused(input_bag, tmp_path, capsys):
     assert status == 1
     assert err.startswith('ERROR: ') and 'rate' in err
     assert not (tmp_path / 'r').exists()
+
+
+def test_the_parameters_figure_shows_the_model_in_use_only_where_it_differs(
+    input_bag, output_bag, tmp_path
+):
+    """cloe_iv publishes a usable model that differs from its raw estimate early on; cloe_sm runs
+    on its own estimate, so there is nothing more to draw."""
+    infer_bag(input_bag, tmp_path / 'iv', {'algorithm': 'cloe_iv', 'prediction_horizon': 0.0})
+    iv = load_flight(tmp_path / 'iv')[''].outputs['cloe']
+    columns = model_columns(iv)
+    assert [iv.labels[c] for c in columns] == [f'model.theta.{n}' for n in PARAMETER_NAMES]
+    assert not np.array_equal(iv.parameters.values[:, columns], iv.parameters.values[:, :16])
+    assert model_columns(load_flight(output_bag)[''].outputs['cloe']) is None

@@ -127,6 +127,34 @@ def align_yaw(series: Series, like: Series) -> Series:
     return Series(series.t_ns, values)
 
 
+def _message_time(
+    log_ns: np.ndarray,
+    state_raws: list[bytes] | None,
+    state_log_ns: list[int] | None,
+    state_type: str | None,
+) -> np.ndarray:
+    """Message times of an output that has no header (``parameters``: Float64MultiArray).
+
+    Its only time is the bag's log time: the estimate time in bags written by ``cloe infer``, but
+    the reception time in recordings, which runs at the wall clock's pace (a simulation at 2x real
+    time is recorded in half its duration). The output's ``state`` (Odometry, stamped with the
+    estimate time and published at the same steps) maps one to the other; without it the log
+    time is all there is.
+    """
+    if not state_raws or state_type != messages.ODOMETRY or len(state_raws) < 2:
+        return log_ns
+    stamps = np.array([messages.decode_odometry(r).stamp_ns for r in state_raws], dtype=np.int64)
+    logs = np.asarray(state_log_ns, dtype=np.int64)
+    order = np.argsort(logs, kind='stable')
+    logs, stamps = logs[order], stamps[order]
+    if np.any(np.diff(stamps) < 0):  # not a monotone map: keep the log time
+        return log_ns
+    base = logs[0]  # interpolate in float64 relative to an origin, keeping ns resolution
+    return stamps[0] + np.round(np.interp(log_ns - base, logs - base, stamps - stamps[0])).astype(
+        np.int64
+    )
+
+
 def load_flight(path: str | Path) -> dict[str, VehicleData]:
     """Every vehicle of the bag at ``path``, by namespace ('' for un-namespaced topics).
 
@@ -179,11 +207,14 @@ def load_flight(path: str | Path) -> dict[str, VehicleData]:
             if kind == 'state' and topics[f'{ns}/{out_ns}/state'] == messages.ODOMETRY:
                 out.state = align_yaw(states_from_odometry(raws), odom)
             elif kind == 'parameters' and raws:
-                # Float64MultiArray has no header: its time is the bag's log time (the estimate
-                # time in bags written by `cloe infer`, the reception time in recordings)
                 decoded = [messages.decode_float64_multi_array(r) for r in raws]
                 out.labels = decoded[-1][0]
-                t = np.array(log_times[f'{ns}/{out_ns}/parameters'], dtype=np.int64)
+                t = _message_time(
+                    np.array(log_times[f'{ns}/{out_ns}/parameters'], dtype=np.int64),
+                    wanted.get(f'{ns}/{out_ns}/state'),
+                    log_times.get(f'{ns}/{out_ns}/state'),
+                    topics.get(f'{ns}/{out_ns}/state'),
+                )
                 out.parameters = Series(t, np.array([d[1] for d in decoded]))
             elif kind == 'prediction' and raws and topics[f'{ns}/{out_ns}/prediction'] == (
                     messages.PATH):  # fmt: skip

@@ -87,9 +87,10 @@ def run(args: argparse.Namespace) -> int:
     env = ros_env(domain, logs / 'ros')
     print(f'ROS_DOMAIN_ID={domain} (private, localhost only); logs in {logs}')
 
-    recorded = ['/odom', '/reference', '/ground_truth', '/true_parameters', '/diagnostics']
-    for alg, _ in ALGORITHMS:
-        recorded += [f'/{alg}/state', f'/{alg}/parameters', f'/{alg}/prediction']
+    outputs = [f'/{alg}/{kind}' for alg, _ in ALGORITHMS
+               for kind in ('state', 'parameters', 'prediction')]  # fmt: skip
+    recorded = ['/odom', '/reference', '/ground_truth', '/true_parameters', '/diagnostics',
+                *outputs]  # fmt: skip
     procs: list[NodeProcess] = []
     try:
         recorder = _start('bag_recorder', {'output': str(bag), 'topics': recorded}, env, logs)
@@ -103,6 +104,13 @@ def run(args: argparse.Namespace) -> int:
             ready = 'recording to' if p.name == 'bag_recorder' else 'ready:'
             if not p.wait_for(ready, timeout=30.0):
                 raise CliError(f'{p.name} did not start; its log:\n{p.output()}')
+        # the recorder subscribes to a topic once discovery shows its publisher, which can take
+        # seconds: start the simulation only when every output is being recorded, or their first
+        # seconds are lost
+        for topic in outputs:
+            if not recorder.wait_for(f'recording {topic} (', timeout=30.0):
+                raise CliError(f'bag_recorder did not subscribe to {topic}; its log:\n'
+                               f'{recorder.output()}')  # fmt: skip
         print(f'recording to {bag}; ' + ', '.join(label for _, label in ALGORITHMS)
               + f' inference at {args.rate:g} Hz')  # fmt: skip
         sim = _start('quadrotor_sim', {

@@ -90,6 +90,12 @@ WIDTH = 6  # rows are padded to 5 entries, plus the start-up transient (see _DEC
 QUIET = 1e-3
 #: Time constant of the low-pass against which a row's drift is measured, s.
 DRIFT_TIME = 2.0
+#: Recent data on which a reduced loop not yet identified is compared with the model in use, s,
+#: and the horizon of the comparison's predictions, s.
+VALIDATION_WINDOW = 4.0
+VALIDATION_HORIZON = 1.0
+#: A reduced loop is taken on validation only if it predicts at least this much better.
+VALIDATION_MARGIN = 0.8
 
 #: Normalising scale of each state (positions m, velocities m/s, angles rad, rates rad/s).
 STATE_SCALE = np.array([1.0, 1.0, 0.1, 0.5, 1.0, 1.0, 0.1, 0.5, 0.3, 1.0, 1.0, 1.0])
@@ -368,6 +374,13 @@ class IvIdentifier:
         self._prior_norm = self._normalised(self.theta_prior, self.coupling_prior, self.loop_prior)
         self._rows = np.tile(self._prior_norm, (n, 1, 1))  # last solution (normalised)
         self._rows_slow = self._rows.copy()  # its low-pass (DRIFT_TIME), see _update_excitation
+        # the last VALIDATION_WINDOW of measurements and references (see _validate)
+        w = max(2, round(VALIDATION_WINDOW / self.h))
+        self._hist_z = np.zeros((n, w, N_STATES))
+        self._hist_r = np.zeros((n, w, N_REFERENCES))
+        self._hist_active = np.zeros((n, w), dtype=bool)
+        self._hist_next = 0
+        self._hist_count = 0
 
     # ---------------------------------------------------------------- layout helpers
 
@@ -420,6 +433,12 @@ class IvIdentifier:
         time; update the estimate. Vehicles with ``active`` False (N,) keep filtering but add
         nothing to the estimate (e.g. while landed, when the closed-loop model does not hold)."""
         cfg, h = self.config, self.h
+        k = self._hist_next
+        self._hist_z[:, k] = zeta
+        self._hist_r[:, k] = r
+        self._hist_active[:, k] = True if active is None else active
+        self._hist_next = (k + 1) % self._hist_z.shape[1]
+        self._hist_count += 1
         # auxiliary model: driven by the reference only
         self.x_aux = np.einsum('nij,nj->ni', self._aux_ad, self.x_aux) + np.einsum(
             'nij,nj->ni', self._aux_bd, r
@@ -490,8 +509,10 @@ class IvIdentifier:
         The usable model (what the observer runs on and the predictions integrate) takes, per
         block, the full estimate when the block's rows are at least converging; for a 4th-order
         block whose full row is not, the reduced model (:data:`ATTITUDE_LOOP`) when its position
-        loop is; otherwise it keeps what it had (at first, the prior). A candidate must be stable,
-        and stable for an explicit step of ``h`` (the observer integrates the drift explicitly).
+        loop is, or when the loop is excited and its estimate predicts the last
+        ``VALIDATION_WINDOW`` clearly better than the model in use (:meth:`_validate`); otherwise
+        it keeps what it had (at first, the prior). A candidate must be stable, and stable for an
+        explicit step of ``h`` (the observer integrates the drift explicitly).
         """
         cfg = self.config
         n = self.theta.shape[0]
@@ -519,6 +540,17 @@ class IvIdentifier:
                 use_reduced[:, j] = ~usable[:, j] & usable[:, LOOP_ROWS[j]]
                 rows = loop_row(self.loops[:, j, 0], self.loops[:, j, 1])
                 reduced[use_reduced[:, j], sl] = rows[use_reduced[:, j]]
+        # a reduced loop excited but not (yet) usable by its uncertainty: taken if it predicts
+        # the recent past clearly better than the model in use (see _validate)
+        for j, sl in enumerate(BLOCK_SLICES[: len(LOOP_ROWS)]):
+            loop = LOOP_ROWS[j]
+            excited = self.excitation[:, loop] >= cfg.excitation_threshold
+            for v in np.flatnonzero(~use_full[:, j] & ~use_reduced[:, j] & excited):
+                rows = loop_row(self.loops[v, j, 0], self.loops[v, j, 1])
+                in_use = self._validate(v, j, self.model_theta[v, sl], self.model_coupling[v, j])
+                if self._validate(v, j, rows, coupling[v, j]) < VALIDATION_MARGIN * in_use:
+                    use_reduced[v, j] = True
+                    reduced[v, sl] = rows
         candidate = np.where(np.repeat(use_full, [b.n_params for b in BLOCKS], axis=1), full,
                              reduced)  # fmt: skip
         ok = block_is_stable(candidate, coupling, margin=0.05, step=self.h)
@@ -531,6 +563,42 @@ class IvIdentifier:
                                                                     self.model_kind))  # fmt: skip
         if np.any(stable):
             self._set_aux(np.ones(n, dtype=bool))
+
+    def _validate(self, v: int, j: int, block_theta: np.ndarray, coupling: float) -> float:
+        """Mean squared position error of block ``j``'s model predicting the last
+        ``VALIDATION_WINDOW`` of vehicle ``v``: from the measured block state every 0.5 s,
+        ``VALIDATION_HORIZON`` ahead, driven by the recorded reference. ``inf`` when there is not
+        enough data, the vehicle was not active all along (landed), or the model is unstable."""
+        w = self._hist_z.shape[1]
+        if self._hist_count < w or not self._hist_active[v].all():
+            return np.inf
+        block = BLOCKS[j]
+        idx = list(block.states)
+        theta = self.model_theta[v].copy()
+        theta[BLOCK_SLICES[j]] = block_theta
+        c = self.model_coupling[v].copy()
+        if j < len(c):
+            c[j] = coupling
+        a, b = system_matrices(theta, c)
+        n = len(idx)
+        m = np.zeros((n + 1, n + 1))
+        m[:n, :n] = a[np.ix_(idx, idx)]
+        m[:n, n] = b[idx, block.reference]
+        if np.max(np.linalg.eigvals(m[:n, :n]).real) >= 0.0:
+            return np.inf
+        e = expm(m * self.h)
+        ad, bd = e[:n, :n], e[:n, n]
+        order = (self._hist_next + np.arange(w)) % w  # oldest first
+        z = self._hist_z[v, order][:, idx]
+        r = self._hist_r[v, order, block.reference]
+        steps = round(VALIDATION_HORIZON / self.h)
+        starts = np.arange(0, w - steps, max(1, round(0.5 / self.h)))
+        x = z[starts].copy()
+        err = 0.0
+        for k in range(steps):
+            x = x @ ad.T + np.outer(r[starts + k], bd)
+            err += np.sum((x[:, 0] - z[starts + k + 1, 0]) ** 2)
+        return err / (len(starts) * steps)
 
     def reference_rms(self) -> np.ndarray:
         """RMS of each block's filtered reference over the short window (N, 4), normalised."""

@@ -543,14 +543,15 @@ class IvIdentifier:
         # a reduced loop excited but not (yet) usable by its uncertainty: taken if it predicts
         # the recent past clearly better than the model in use (see _validate)
         for j, sl in enumerate(BLOCK_SLICES[: len(LOOP_ROWS)]):
-            loop = LOOP_ROWS[j]
-            excited = self.excitation[:, loop] >= cfg.excitation_threshold
-            for v in np.flatnonzero(~use_full[:, j] & ~use_reduced[:, j] & excited):
-                rows = loop_row(self.loops[v, j, 0], self.loops[v, j, 1])
-                in_use = self._validate(v, j, self.model_theta[v, sl], self.model_coupling[v, j])
-                if self._validate(v, j, rows, coupling[v, j]) < VALIDATION_MARGIN * in_use:
-                    use_reduced[v, j] = True
-                    reduced[v, sl] = rows
+            excited = self.excitation[:, LOOP_ROWS[j]] >= cfg.excitation_threshold
+            vs = np.flatnonzero(~use_full[:, j] & ~use_reduced[:, j] & excited)
+            if not len(vs):
+                continue
+            rows = loop_row(self.loops[vs, j, 0], self.loops[vs, j, 1])
+            in_use = self._validate(vs, j, self.model_theta[vs, sl], self.model_coupling[vs, j])
+            better = self._validate(vs, j, rows, coupling[vs, j]) < VALIDATION_MARGIN * in_use
+            use_reduced[vs[better], j] = True
+            reduced[vs[better], sl] = rows[better]
         candidate = np.where(np.repeat(use_full, [b.n_params for b in BLOCKS], axis=1), full,
                              reduced)  # fmt: skip
         ok = block_is_stable(candidate, coupling, margin=0.05, step=self.h)
@@ -564,41 +565,47 @@ class IvIdentifier:
         if np.any(stable):
             self._set_aux(np.ones(n, dtype=bool))
 
-    def _validate(self, v: int, j: int, block_theta: np.ndarray, coupling: float) -> float:
-        """Mean squared position error of block ``j``'s model predicting the last
-        ``VALIDATION_WINDOW`` of vehicle ``v``: from the measured block state every 0.5 s,
-        ``VALIDATION_HORIZON`` ahead, driven by the recorded reference. ``inf`` when there is not
+    def _validate(
+        self, vs: np.ndarray, j: int, block_theta: np.ndarray, coupling: np.ndarray
+    ) -> np.ndarray:
+        """Mean squared position error (len(vs),) of block ``j``'s model ``block_theta``
+        (len(vs), n_params) with tilt coupling ``coupling`` (len(vs),) predicting the last
+        ``VALIDATION_WINDOW`` of vehicles ``vs``: from the measured block state every 0.5 s,
+        ``VALIDATION_HORIZON`` ahead, driven by the recorded reference. ``inf`` where there is not
         enough data, the vehicle was not active all along (landed), or the model is unstable."""
         w = self._hist_z.shape[1]
-        if self._hist_count < w or not self._hist_active[v].all():
-            return np.inf
+        out = np.full(len(vs), np.inf)
+        if self._hist_count < w:
+            return out
         block = BLOCKS[j]
         idx = list(block.states)
-        theta = self.model_theta[v].copy()
-        theta[BLOCK_SLICES[j]] = block_theta
-        c = self.model_coupling[v].copy()
-        if j < len(c):
-            c[j] = coupling
-        a, b = system_matrices(theta, c)
         n = len(idx)
-        m = np.zeros((n + 1, n + 1))
-        m[:n, :n] = a[np.ix_(idx, idx)]
-        m[:n, n] = b[idx, block.reference]
-        if np.max(np.linalg.eigvals(m[:n, :n]).real) >= 0.0:
-            return np.inf
-        e = expm(m * self.h)
-        ad, bd = e[:n, :n], e[:n, n]
+        theta = self.model_theta[vs].copy()
+        theta[:, BLOCK_SLICES[j]] = block_theta
+        c = self.model_coupling[vs].copy()
+        c[:, j] = coupling
+        a, b = system_matrices(theta, c)
+        m = np.zeros((len(vs), n + 1, n + 1))
+        m[:, :n, :n] = a[:, idx][:, :, idx]
+        m[:, :n, n] = b[:, idx, block.reference]
+        ok = self._hist_active[vs].all(axis=1)
+        ok &= np.max(np.linalg.eigvals(m[:, :n, :n]).real, axis=-1) < 0.0
+        if not np.any(ok):
+            return out
+        e = expm(m[ok] * self.h)
+        ad_t, bd = np.swapaxes(e[:, :n, :n], 1, 2), e[:, None, :n, n]
         order = (self._hist_next + np.arange(w)) % w  # oldest first
-        z = self._hist_z[v, order][:, idx]
-        r = self._hist_r[v, order, block.reference]
+        z = self._hist_z[vs[ok]][:, order][:, :, idx]  # (V, w, n)
+        r = self._hist_r[vs[ok]][:, order, block.reference]  # (V, w)
         steps = round(VALIDATION_HORIZON / self.h)
         starts = np.arange(0, w - steps, max(1, round(0.5 / self.h)))
-        x = z[starts].copy()
-        err = 0.0
+        x = z[:, starts]  # (V, S, n)
+        err = np.zeros(len(x))
         for k in range(steps):
-            x = x @ ad.T + np.outer(r[starts + k], bd)
-            err += np.sum((x[:, 0] - z[starts + k + 1, 0]) ** 2)
-        return err / (len(starts) * steps)
+            x = x @ ad_t + r[:, starts + k, None] * bd
+            err += np.sum((x[..., 0] - z[:, starts + k + 1, 0]) ** 2, axis=1)
+        out[ok] = err / (len(starts) * steps)
+        return out
 
     def reference_rms(self) -> np.ndarray:
         """RMS of each block's filtered reference over the short window (N, 4), normalised."""

@@ -368,17 +368,40 @@ def test_a_loop_that_predicts_the_recent_past_better_is_used_before_it_is_identi
 
 
 def test_validation_scores_the_true_loop_near_zero_and_the_prior_worse():
+    """The score of three candidate x loops at once: the true one, the prior, an unstable one."""
     theta, t, r, zeta = reduced_loop_flight((6.0, 2.5), duration=10.0)
     ident = run_identifier(theta, t, r, zeta)
     prior, _ = cascade_prior()
     sl = BLOCK_SLICES[0]
-    c = PAPER_COUPLING[0]
-    true_score = ident._validate(0, 0, theta[sl], c)
-    prior_score = ident._validate(0, 0, prior[sl], c)
-    # the samples come from that model (integrated at 1 ms with the reference moving between
-    # samples; the score holds it for 10 ms): under 1 mm RMS, against centimetres for the prior
-    assert np.sqrt(true_score) < 1e-3
-    assert np.sqrt(prior_score) > 1e-2
     unstable = theta[sl].copy()
     unstable[3] = +5.0  # negative damping of the attitude loop
-    assert ident._validate(0, 0, unstable, c) == np.inf
+    # one vehicle, scored three times (the vehicle index may repeat)
+    scores = ident._validate(
+        np.zeros(3, dtype=int), 0, np.stack([theta[sl], prior[sl], unstable]),
+        np.full(3, PAPER_COUPLING[0]),
+    )  # fmt: skip
+    # the samples come from the true model (integrated at 1 ms with the reference moving between
+    # samples; the score holds it for 10 ms): under 1 mm RMS, against centimetres for the prior
+    assert np.sqrt(scores[0]) < 1e-3
+    assert np.sqrt(scores[1]) > 1e-2
+    assert scores[2] == np.inf
+
+
+def test_a_batch_of_vehicles_equals_single_runs():
+    """Two vehicles with different loops, identified together and one by one, end with the same
+    estimates and the same usable model (validation included: every row is kept below
+    "converging", so the loops enter only by validation)."""
+    config = IdentifierConfig(identified_uncertainty=1e-6, unidentifiable_uncertainty=2e-6)
+    flights = [reduced_loop_flight(loop, duration=20.0) for loop in ((6.0, 2.5), (5.0, 2.0))]
+    zeta = np.stack([f[3] for f in flights], axis=1)  # (T, 2, 12)
+    r = np.stack([f[2] for f in flights], axis=1)
+    batch = IvIdentifier(config, H, zeta[0], r[0])
+    for k in range(1, len(zeta)):
+        batch.step(zeta[k], r[k])
+    for v, (theta, t, rv, zv) in enumerate(flights):
+        single = run_identifier(theta, t, rv, zv, config)
+        np.testing.assert_allclose(batch.theta[v], single.theta[0], rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(batch.model_theta[v], single.model_theta[0], rtol=1e-9,
+                                   atol=1e-9)  # fmt: skip
+        assert list(batch.model_kind[v]) == list(single.model_kind[0])
+    assert batch.model_kind[0, 0] == batch.model_kind[1, 0] == 'reduced'

@@ -131,10 +131,12 @@ def oracle_predictions(
 def copy_bag(
     source: Path, target: Path, extra: Iterable[tuple[str, str, list[tuple[int, bytes]]]] = ()
 ) -> Path:
-    """Copy every message of ``source`` into a new bag ``target``, adding ``extra`` topics given as
-    ``(name, msgtype, [(log_time_ns, cdr), ...])``."""
+    """Copy every message of ``source`` (and its metadata's ``custom_data``) into a new bag
+    ``target``, adding ``extra`` topics given as ``(name, msgtype, [(log_time_ns, cdr), ...])``."""
     records: list[tuple[int, str, bytes]] = []
     with BagReader(source) as reader, BagWriter(target) as writer:
+        for key, value in reader.custom_data.items():
+            writer.set_custom_data(key, value)
         for name, info in reader.topics.items():
             writer.add_topic(name, info.msgtype)
         for name, msgtype, msgs in extra:

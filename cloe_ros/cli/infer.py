@@ -167,6 +167,10 @@ def infer_bag(
         writer = BagWriter(output, compression=compression)
         try:
             with writer:
+                # what produced the outputs, for readers of the bag (`cloe report` labels them)
+                key = f'cloe_ros.{output_config.output_ns.strip("/")}'
+                writer.set_custom_data(f'{key}.algorithm', engine_config.estimator.algorithm)
+                writer.set_custom_data(f'{key}.rate_hz', f'{engine_config.rate:g}')
                 for topic in copies:
                     writer.add_topic(topic, topics[topic], reader.topics[topic].offered_qos)
                 for enc in encoders.values():

@@ -736,7 +736,7 @@ def flight_figures(vehicle, out_dir: Path, outputs: dict[str, str] | None = None
 
     """
     out_dir.mkdir(parents=True, exist_ok=True)
-    names = outputs or {n: n for n in vehicle.outputs}
+    names = outputs or {n: o.label for n, o in vehicle.outputs.items()}
     tag = vehicle.namespace.strip('/').replace('/', '_') or 'vehicle'
     paths = [
         flight_errors_figure(vehicle, names, out_dir / f'{tag}_errors.png'),

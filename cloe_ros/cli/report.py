@@ -515,20 +515,21 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     finals: dict[str, np.ndarray] = {}
     preds: dict[str, PredictionScore] = {}
     for name, out in sorted(vehicle.outputs.items()):
-        entry: dict = {'score': None, 'final_parameters': None, 'prediction': None}
+        entry: dict = {'algorithm': out.algorithm, 'score': None, 'final_parameters': None,
+                       'prediction': None}  # fmt: skip
         score = score_output(vehicle, name)
         if score is not None:
-            scores[name] = score
+            scores[out.label] = score
             entry['score'] = _score_dict(score)
         if out.parameters is not None and len(out.parameters):
             theta = out.parameters.values[-1, :N_PARAMS]
-            finals[name] = theta
+            finals[out.label] = theta
             entry['final_parameters'] = dict(zip(PARAMETER_NAMES, map(float, theta)))
             entry['parameters_time_s'] = (out.parameters.t_ns[-1] - t0) / NS
             entry['max_real_pole'] = _max_real_poles(theta)
         if out.prediction is not None and len(out.prediction.t_ns):
             p = prediction_rmse(out.prediction, vehicle.odom)
-            preds[name] = p
+            preds[out.label] = p
             entry['prediction'] = {
                 'horizons_s': list(p.horizons),
                 'model': p.model,
@@ -553,7 +554,7 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     if finals:
         tables += _parameter_tables(vehicle, finals)
 
-    paths = flight_figures(vehicle, folder)
+    paths = flight_figures(vehicle, folder, {n: o.label for n, o in vehicle.outputs.items()})
     if preds:
         tag = vehicle.namespace.strip('/').replace('/', '_') or 'vehicle'
         paths.append(prediction_figure(

@@ -57,6 +57,16 @@ class InferenceOutput:
     parameters: Series | None = None
     labels: list[str] = field(default_factory=list)
     prediction: Predictions | None = None
+    algorithm: str | None = None  # as `cloe infer` records it in the bag's custom_data
+
+    @property
+    def label(self) -> str:
+        """How to name this output: its namespace, and the algorithm when that is known and
+        differs (``cloe (cloe_iv)``: `cloe infer` writes every algorithm to ``cloe`` by default,
+        which is also the name of the paper's algorithm)."""
+        if self.algorithm and self.algorithm != self.name:
+            return f'{self.name} ({self.algorithm})'
+        return self.name
 
 
 @dataclass
@@ -186,6 +196,7 @@ def load_flight(path: str | Path) -> dict[str, VehicleData]:
                 if m and m.group(1) not in (ODOM, REFERENCE):
                     outputs[(ns, m.group(1), m.group(2))] = []
                     wanted[name] = []
+        custom = dict(reader.custom_data)
         for topic, log_ns, raw in reader.messages([t for t in wanted if t in topics]):
             wanted[topic].append(bytes(raw))
             log_times.setdefault(topic, []).append(log_ns)
@@ -203,7 +214,8 @@ def load_flight(path: str | Path) -> dict[str, VehicleData]:
             if vns != ns:
                 continue
             raws = wanted[f'{ns}/{out_ns}/{kind}']
-            out = data.outputs.setdefault(out_ns, InferenceOutput(out_ns))
+            algorithm = custom.get(f'cloe_ros.{out_ns}.algorithm')
+            out = data.outputs.setdefault(out_ns, InferenceOutput(out_ns, algorithm=algorithm))
             if kind == 'state' and topics[f'{ns}/{out_ns}/state'] == messages.ODOMETRY:
                 out.state = align_yaw(states_from_odometry(raws), odom)
             elif kind == 'parameters' and raws:

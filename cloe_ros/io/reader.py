@@ -72,7 +72,8 @@ class BagReader:
 
     After opening: ``topics`` (name -> :class:`TopicInfo`), ``start_ns`` / ``end_ns`` (log time of
     the first / last message, int ns since the epoch; both 0 for a bag without messages),
-    ``duration_s`` (``end_ns - start_ns`` in s) and ``message_count``.
+    ``duration_s`` (``end_ns - start_ns`` in s), ``message_count`` and ``custom_data`` (the
+    ``custom_data`` of ``metadata.yaml``; empty for a single storage file or when there is none).
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -82,6 +83,7 @@ class BagReader:
         self.end_ns = 0
         self.duration_s = 0.0
         self.message_count = 0
+        self.custom_data: dict[str, str] = {}
         self._reader: Reader | None = None
 
     # -- opening -------------------------------------------------------------------------------
@@ -161,6 +163,10 @@ class BagReader:
     def _read_summary(self, reader: Reader, metadata: dict[str, Any] | None) -> None:
         """Fill ``topics``, times and count from an open rosbags reader."""
         stored_qos: dict[str, str] = {}
+        custom = metadata.get('custom_data') if metadata is not None else None
+        self.custom_data = (
+            {str(k): str(v) for k, v in custom.items()} if isinstance(custom, dict) else {}
+        )
         if metadata is not None:
             for entry in metadata['topics_with_message_count']:
                 meta = entry['topic_metadata']

@@ -244,6 +244,15 @@ class BagWriter:
             msg = f'cannot write bag {self.path}: {err}'
             raise WriterError(msg) from err
 
+    def set_custom_data(self, key: str, value: str) -> None:
+        """A key-value pair for the ``custom_data`` of ``metadata.yaml`` (rosbag2's place for what
+        the tool that wrote a bag wants to say about it), written when the bag is closed."""
+        self._require_open()
+        if not (isinstance(key, str) and isinstance(value, str)):
+            msg = f'custom data must map str to str, got {key!r}: {value!r}'
+            raise WriterError(msg)
+        self._writer.set_custom_data(key, value)
+
     def close(self) -> None:
         """Finish the bag: pending chunk, MCAP summary and footer, ``metadata.yaml``.
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from bag_fixtures import ORIGIN_NS, read_topics, simulate, write_sim_bag
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
@@ -29,6 +30,7 @@ from cloe_ros.core.samples import PoseSample
 from cloe_ros.io import messages
 from cloe_ros.io.config import DEFAULTS
 from cloe_ros.io.outputs import PARAMETER_LABELS
+from cloe_ros.io.reader import BagReader
 from cloe_ros.io.writer import BagWriter
 
 NS = 1_000_000_000
@@ -352,6 +354,15 @@ def test_outputs_of_the_contract(inferred):
     first, last = max(t_odom[0], t_ref[0]), t_odom[-1]
     assert first <= t[0] < first + STEP_NS
     assert last - STEP_NS < t[-1] <= last
+
+    # what produced the outputs, in the metadata's custom_data (rosbag2's place for it), read
+    # both as plain YAML and through the package's reader
+    custom = yaml.safe_load((out / 'metadata.yaml').read_text())['rosbag2_bagfile_information'][
+        'custom_data'
+    ]
+    assert custom == {'cloe_ros.cloe.algorithm': 'cloe_iv', 'cloe_ros.cloe.rate_hz': '100'}
+    with BagReader(out) as reader:
+        assert reader.custom_data == custom
 
     # parameters: every entry labelled as the package says
     params = decoded(out, '/cloe/parameters')

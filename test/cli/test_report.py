@@ -165,9 +165,11 @@ def test_report_on_an_input_bag_infers_it_first(input_bag, tmp_path, capsys):
         'vehicle_parameter_error.png', 'vehicle_path.png',
     })  # fmt: skip
     # the main table on stdout: one column per output, the raw measurement beside it (simulation)
+    # (the output namespace, and the algorithm `cloe infer` recorded in the bag)
     assert table_header(out, '/: estimation error against the ground truth') == [
-        'metric', 'cloe', 'odom', '(raw', 'measurement)',
+        'metric', 'cloe', '(cloe_iv)', 'odom', '(raw', 'measurement)',
     ]  # fmt: skip
+    assert data['vehicles']['/']['outputs']['cloe']['algorithm'] == 'cloe_iv'
     for row in (
         'RMSE 12-state norm (vs ground truth)',
         'RMSE angles',
@@ -210,7 +212,7 @@ def test_report_on_an_input_bag_infers_it_first(input_bag, tmp_path, capsys):
     assert data['inference']['malformed'] == {'': 0}
     # the parameter table shows truth and error beside the estimate
     summary = (folder / 'summary.md').read_text()
-    assert '| parameter | cloe Θ̂ | true Θ | cloe error [%] |' in summary
+    assert '| parameter | cloe (cloe_iv) Θ̂ | true Θ | cloe (cloe_iv) error [%] |' in summary
     assert 'scored against' in summary and 'simulator ground truth' in summary
 
 
@@ -246,8 +248,8 @@ def test_report_on_an_output_bag_with_predictions(flight, output_bag, tmp_path, 
     data = check_folder(folder, {'vehicle_prediction.png', 'vehicle_path.png'})
     assert 'outputs found in the bag: /cloe' in out
     assert table_header(out, '/: prediction RMSE against the measured position [m]') == [
-        'horizon', '[s]', 'cloe', 'model', 'cloe', 'const.', 'velocity', 'cloe', 'hold', 'cloe',
-        'paths',
+        'horizon', '[s]', 'cloe', '(cloe_sm)', 'model', 'cloe', '(cloe_sm)', 'const.', 'velocity',
+        'cloe', '(cloe_sm)', 'hold', 'cloe', '(cloe_sm)', 'paths',
     ]  # fmt: skip
     pred = data['vehicles']['/']['outputs']['cloe']['prediction']
     assert pred['horizons_s'] == [0.5, 1.0, 2.0, 5.0]

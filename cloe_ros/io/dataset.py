@@ -94,7 +94,11 @@ def vehicle_namespaces(topics: dict[str, str]) -> list[str]:
 
 def states_from_odometry(raws: list[bytes]) -> Series:
     """Model states with continuous yaw from raw Odometry messages."""
-    samples = [messages.decode_odometry(r) for r in raws]
+    return _states([messages.decode_odometry(r) for r in raws])
+
+
+def _states(samples: list) -> Series:
+    """Model states with continuous yaw from decoded Odometry samples, sorted by stamp."""
     if not samples:
         return Series(np.zeros(0, dtype=np.int64), np.zeros((0, 12)))
     t = np.array([s.stamp_ns for s in samples], dtype=np.int64)
@@ -138,25 +142,21 @@ def align_yaw(series: Series, like: Series) -> Series:
 
 
 def _message_time(
-    log_ns: np.ndarray,
-    state_raws: list[bytes] | None,
-    state_log_ns: list[int] | None,
-    state_type: str | None,
+    log_ns: np.ndarray, state_stamps: np.ndarray | None, state_log_ns: list[int] | None
 ) -> np.ndarray:
     """Message times of an output that has no header (``parameters``: Float64MultiArray).
 
     Its only time is the bag's log time: the estimate time in bags written by ``cloe infer``, but
     the reception time in recordings, which runs at the wall clock's pace (a simulation at 2x real
     time is recorded in half its duration). The output's ``state`` (Odometry, stamped with the
-    estimate time and published at the same steps) maps one to the other; without it the log
-    time is all there is.
+    estimate time and published at the same steps; ``state_stamps`` in the order of
+    ``state_log_ns``) maps one to the other; without it the log time is all there is.
     """
-    if not state_raws or state_type != messages.ODOMETRY or len(state_raws) < 2:
+    if state_stamps is None or len(state_stamps) < 2:
         return log_ns
-    stamps = np.array([messages.decode_odometry(r).stamp_ns for r in state_raws], dtype=np.int64)
     logs = np.asarray(state_log_ns, dtype=np.int64)
     order = np.argsort(logs, kind='stable')
-    logs, stamps = logs[order], stamps[order]
+    logs, stamps = logs[order], state_stamps[order]
     if np.any(np.diff(stamps) < 0):  # not a monotone map: keep the log time
         return log_ns
     base = logs[0]  # interpolate in float64 relative to an origin, keeping ns resolution
@@ -210,22 +210,25 @@ def load_flight(path: str | Path) -> dict[str, VehicleData]:
         if wanted.get(f'{ns}/true_parameters'):
             _, values = messages.decode_float64_multi_array(wanted[f'{ns}/true_parameters'][-1])
             data.true_parameters = values
-        for (vns, out_ns, kind), _ in sorted(outputs.items()):
+        # each output's state first: its stamps place the parameters (see _message_time)
+        state_stamps: dict[str, np.ndarray] = {}
+        for vns, out_ns, kind in sorted(outputs, key=lambda o: (o[:2], o[2] != 'state')):
             if vns != ns:
                 continue
             raws = wanted[f'{ns}/{out_ns}/{kind}']
             algorithm = custom.get(f'cloe_ros.{out_ns}.algorithm')
             out = data.outputs.setdefault(out_ns, InferenceOutput(out_ns, algorithm=algorithm))
             if kind == 'state' and topics[f'{ns}/{out_ns}/state'] == messages.ODOMETRY:
-                out.state = align_yaw(states_from_odometry(raws), odom)
+                samples = [messages.decode_odometry(r) for r in raws]
+                state_stamps[out_ns] = np.array([m.stamp_ns for m in samples], dtype=np.int64)
+                out.state = align_yaw(_states(samples), odom)
             elif kind == 'parameters' and raws:
                 decoded = [messages.decode_float64_multi_array(r) for r in raws]
                 out.labels = decoded[-1][0]
                 t = _message_time(
                     np.array(log_times[f'{ns}/{out_ns}/parameters'], dtype=np.int64),
-                    wanted.get(f'{ns}/{out_ns}/state'),
+                    state_stamps.get(out_ns),
                     log_times.get(f'{ns}/{out_ns}/state'),
-                    topics.get(f'{ns}/{out_ns}/state'),
                 )
                 out.parameters = Series(t, np.array([d[1] for d in decoded]))
             elif kind == 'prediction' and raws and topics[f'{ns}/{out_ns}/prediction'] == (

@@ -584,15 +584,14 @@ class IvIdentifier:
         theta[:, BLOCK_SLICES[j]] = block_theta
         c = self.model_coupling[vs].copy()
         c[:, j] = coupling
-        a, b = system_matrices(theta, c)
-        m = np.zeros((len(vs), n + 1, n + 1))
-        m[:, :n, :n] = a[:, idx][:, :, idx]
-        m[:, :n, n] = b[:, idx, block.reference]
-        ok = self._hist_active[vs].all(axis=1)
-        ok &= np.max(np.linalg.eigvals(m[:, :n, :n]).real, axis=-1) < 0.0
+        ok = self._hist_active[vs].all(axis=1) & block_is_stable(theta, c)[:, j]
         if not np.any(ok):
             return out
-        e = expm(m[ok] * self.h)
+        a, b = system_matrices(theta[ok], c[ok])
+        m = np.zeros((int(ok.sum()), n + 1, n + 1))
+        m[:, :n, :n] = a[:, idx][:, :, idx]
+        m[:, :n, n] = b[:, idx, block.reference]
+        e = expm(m * self.h)
         ad_t, bd = np.swapaxes(e[:, :n, :n], 1, 2), e[:, None, :n, n]
         order = (self._hist_next + np.arange(w)) % w  # oldest first
         z = self._hist_z[vs[ok]][:, order][:, :, idx]  # (V, w, n)

@@ -554,7 +554,7 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     if finals:
         tables += _parameter_tables(vehicle, finals)
 
-    paths = flight_figures(vehicle, folder, {n: o.label for n, o in vehicle.outputs.items()})
+    paths = flight_figures(vehicle, folder)  # outputs named by their label
     if preds:
         tag = vehicle.namespace.strip('/').replace('/', '_') or 'vehicle'
         paths.append(prediction_figure(

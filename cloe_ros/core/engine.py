@@ -191,6 +191,12 @@ class VehicleEngine:
         self._offset_prev_r: np.ndarray | None = None
         self._ref_rate = np.ones(4)  # (m/s, rad/s: "moving" until measured still)
         self._gains = np.ones(4)
+        # recent estimates and references, every prediction step, for the recent-offset fit
+        self._every = max(1, round(config.prediction.step * config.rate))
+        self._window = math.ceil(config.prediction.disturbance_time * config.rate / self._every)
+        self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(
+            maxlen=self._window * self._every + 1
+        )
 
     # ----------------------------------------------------------------------------- inputs
 
@@ -310,6 +316,7 @@ class VehicleEngine:
         self._anchor_ns, self._anchor_exact = new_stamp_ns, False
 
     def _stop_estimator(self) -> None:
+        self._history.clear()
         if self._est is not None:
             self._model = (self._est.theta_hat[0].copy(), self._est.gain_l[0].copy())
         self._est = None
@@ -325,6 +332,7 @@ class VehicleEngine:
         self._t_ns = None
         self._model = None
         self._prediction_slot = None
+        self._history.clear()
 
     def update_estimator(self, config: EstimatorConfig) -> None:
         """Use new gains from the next step on, keeping the state and the identified model.
@@ -478,6 +486,8 @@ class VehicleEngine:
         self.stats.steps += 1
         self.stats.last_stamp_ns = t_ns
         self.stats.last_error_norm = float(np.linalg.norm(e.error))
+        if self._window:
+            self._history.append((e.zeta_hat, r))
         if self.config.prediction.enabled:
             slot = t_ns // round(NS / self.config.prediction.rate)
             if self._prediction_slot is None or slot > self._prediction_slot:
@@ -521,13 +531,16 @@ class VehicleEngine:
         gains = self._predictor.static_gains(theta, coupling)
         self._gains = gains
         shift = np.divide(self._offset, gains, out=np.zeros(4), where=np.abs(gains) > 0.1)
+        offsets = self._recent_offsets(theta, coupling, shift)
         plan = None
         if self._plan is not None and self._plan[0][-1] > e.stamp_ns:
             stamps, refs = self._plan
             refs = refs.copy()
             refs[:, 2] = refs[:, 2] + (unwrap_near(refs[0, 2], e.zeta_hat[8]) - refs[0, 2])
             plan = ((stamps - e.stamp_ns) / NS, refs + shift)
-        states = self._predictor.predict(e.zeta_hat, theta, coupling, e.reference + shift, plan)
+        states = self._predictor.predict(
+            e.zeta_hat, theta, coupling, e.reference + shift, plan, offsets
+        )
         n = len(states)
         step_ns = round(self.config.prediction.step * NS)
         e.prediction = (e.stamp_ns + step_ns * np.arange(1, n + 1, dtype=np.int64), states)
@@ -547,6 +560,31 @@ class VehicleEngine:
         else:
             e.prediction_status = PREDICTION_IDENTIFIED
             e.prediction_note = 'identified model'
+
+    def _recent_offsets(
+        self, theta: np.ndarray, coupling: np.ndarray, shift: np.ndarray
+    ) -> np.ndarray | None:
+        """Model error over the last ``disturbance_time``, as reference offsets over the horizon
+        (n, 4) on top of the steady-state ``shift``; None until the window is full.
+
+        The offset ``b`` with which the model best reproduces the recent estimates
+        (:func:`~cloe_ros.core.prediction.fit_reference_offset`) replaces the steady-state shift
+        at the start of the horizon and fades back to it with time constant
+        ``disturbance_time``: a model error seen over the last half second says much about the
+        next half second and little about the next five. (On the recorded flights the vehicle
+        leaves its altitude ahead of the logged landing setpoint, and holds its altitude some
+        centimetres off the setpoint after take-off; see docs/identifier.md.)
+        """
+        if len(self._history) < (self._history.maxlen or 0) or not self._window:
+            return None
+        pick = list(self._history)[:: self._every]
+        states = np.array([p[0] for p in pick])
+        refs = np.array([p[1] for p in pick]) + shift
+        b = self._predictor.recent_offset(theta, coupling, states, refs,
+                                          self._every / self.config.rate)  # fmt: skip
+        config = self.config.prediction
+        fade = np.exp(-config.step * np.arange(config.n_poses) / config.disturbance_time)
+        return fade[:, None] * b[None, :]
 
     @property
     def started(self) -> bool:

@@ -5,6 +5,13 @@ held at its latest value, or following a plan of future references when one is k
 discretised exactly (``expm`` of the augmented system over the output step) and cached, so a
 prediction costs one small matrix product per output pose.
 
+Model error as a reference offset: a real vehicle does not follow the identified model exactly
+(an unmodelled force, a controller's integrator, a setpoint logged late). Over a short horizon
+that error acts like a constant offset on the reference, which :func:`fit_reference_offset`
+estimates from the last ``disturbance_time`` seconds of estimates: the offset with which the model
+best reproduces them. The caller adds it to the reference, fading over the horizon (see
+``VehicleEngine._predict``).
+
 Guard: a model with an unstable block is never extrapolated (:class:`Predictor` returns ``None``);
 the caller says so instead of publishing nonsense.
 """
@@ -28,11 +35,14 @@ class PredictionConfig:
     horizon: How far ahead, s (0 disables predictions).
     step: Spacing of the predicted poses, s.
     rate: Predictions per second of message time, Hz.
+    disturbance_time: Window of the recent-offset fit and time constant of its fading over the
+        horizon, s (0: only steady-state offsets).
     """
 
     horizon: float = 5.0
     step: float = 0.1
     rate: float = 5.0
+    disturbance_time: float = 0.5
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.horizon) and 0.0 <= self.horizon <= 120.0):
@@ -46,6 +56,10 @@ class PredictionConfig:
             raise ConfigError(msg)
         if not (np.isfinite(self.rate) and 0.01 <= self.rate <= 1000.0):
             msg = f'prediction rate must be within [0.01, 1000] Hz, got {self.rate!r}'
+            raise ConfigError(msg)
+        if not (np.isfinite(self.disturbance_time) and 0.0 <= self.disturbance_time <= 10.0):
+            msg = (f'prediction disturbance time must be within [0, 10] s, got '
+                   f'{self.disturbance_time!r}')  # fmt: skip
             raise ConfigError(msg)
 
     @property
@@ -68,18 +82,27 @@ class Predictor:
         self._stable = False
         self._gains_key: bytes | None = None
         self._gains = np.ones(N_REFERENCES)
+        self._fit_key: bytes | None = None
+        self._fit_ad, self._fit_bd = self._ad, self._bd
 
     def _discretise(self, theta: np.ndarray, coupling: np.ndarray) -> bool:
         key = np.concatenate([theta, coupling]).tobytes()
         if key != self._key:
             self._key = key
             self._stable = not unstable_blocks(theta, coupling)
-            a, b = system_matrices(theta, coupling)
-            m = np.zeros((N_STATES + N_REFERENCES, N_STATES + N_REFERENCES))
-            m[:N_STATES, :N_STATES], m[:N_STATES, N_STATES:] = a, b
-            e = expm(m * self.config.step)
-            self._ad, self._bd = e[:N_STATES, :N_STATES], e[:N_STATES, N_STATES:]
+            self._ad, self._bd = discretise(theta, coupling, self.config.step)
         return self._stable
+
+    def recent_offset(
+        self, theta: np.ndarray, coupling: np.ndarray, states: np.ndarray, refs: np.ndarray,
+        dt: float,
+    ) -> np.ndarray:  # fmt: skip
+        """:func:`fit_reference_offset` with this model, for states sampled every ``dt`` s."""
+        key = np.concatenate([theta, coupling, [dt]]).tobytes()
+        if key != self._fit_key:
+            self._fit_key = key
+            self._fit_ad, self._fit_bd = discretise(theta, coupling, dt)
+        return fit_reference_offset(self._fit_ad, self._fit_bd, states, refs)
 
     def static_gains(self, theta: np.ndarray, coupling: np.ndarray) -> np.ndarray:
         """Steady-state position (yaw) per unit reference, for each reference channel (4,)."""
@@ -104,6 +127,7 @@ class Predictor:
         coupling: np.ndarray,
         r_now: np.ndarray,
         plan: tuple[np.ndarray, np.ndarray] | None = None,
+        offsets: np.ndarray | None = None,
     ) -> np.ndarray | None:
         """States (n, 12) at ``t + step, ..., t + n step``; None if the model is unstable.
 
@@ -115,6 +139,8 @@ class Predictor:
             plan: Future references: times relative to now (K,) s, increasing, and values
                 (K, 4); over each step the plan's latest value at or before its start is held, the
                 current reference before the plan's first time, its last value after its end.
+            offsets: Added to the reference over each step (n, 4), e.g. a fading model-error
+                offset.
 
         """
         if not self._discretise(np.asarray(theta, float), np.asarray(coupling, float)):
@@ -127,12 +153,61 @@ class Predictor:
             idx = np.searchsorted(times, starts + 1e-9, side='right') - 1
             have = idx >= 0
             refs[have] = values[idx[have]]
+        if offsets is not None:
+            refs += offsets
         out = np.empty((n, N_STATES))
         x = np.asarray(zeta0, dtype=float)
         for k in range(n):
             x = self._ad @ x + self._bd @ refs[k]
             out[k] = x
         return out
+
+
+def discretise(
+    theta: np.ndarray, coupling: np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation ``(Ad (12, 12), Bd (12, 4))`` of the model over
+    ``dt``."""
+    a, b = system_matrices(theta, coupling)
+    m = np.zeros((N_STATES + N_REFERENCES, N_STATES + N_REFERENCES))
+    m[:N_STATES, :N_STATES], m[:N_STATES, N_STATES:] = a, b
+    e = expm(m * dt)
+    return e[:N_STATES, :N_STATES], e[:N_STATES, N_STATES:]
+
+
+#: Outputs the offset is fitted on: x, y, yaw, z.
+FIT_STATES = [0, 4, 8, 10]
+
+
+def fit_reference_offset(
+    ad: np.ndarray, bd: np.ndarray, states: np.ndarray, refs: np.ndarray, ridge: float = 1e-3
+) -> np.ndarray:
+    """The constant reference offset ``b`` (4,) with which the discrete model ``(ad, bd)`` best
+    reproduces recent states.
+
+    ``states`` (M + 1, 12) are sampled every step of the model, oldest first, and ``refs``
+    (M + 1, 4) the references held over the step that follows each. From every sample the model
+    is run to the last one with ``refs + b``; ``b`` minimises the squared errors of x, y, yaw and
+    z over all those runs. The runs are affine in ``b`` (``x_k = x_k^0 + G_k b``), so this is a
+    4 x 4 least-squares problem; ``ridge`` (m^2, rad^2) keeps an offset the window does not
+    determine at zero. Zeros if the window has fewer than two samples or is not finite.
+    """
+    m = len(states) - 1
+    if m < 1 or not (np.isfinite(states).all() and np.isfinite(refs).all()):
+        return np.zeros(N_REFERENCES)
+    lhs = ridge * np.eye(N_REFERENCES)
+    rhs = np.zeros(N_REFERENCES)
+    x = states[:-1].copy()  # every run at once: run i starts at sample i
+    g = np.zeros((m, N_STATES, N_REFERENCES))
+    for k in range(m):
+        # step k takes runs 0..k from sample k to sample k + 1
+        x[: k + 1] = x[: k + 1] @ ad.T + refs[k] @ bd.T
+        g[: k + 1] = ad @ g[: k + 1] + bd
+        gk = g[: k + 1][:, FIT_STATES]  # (k + 1, 4, 4)
+        err = states[k + 1, FIT_STATES] - x[: k + 1, FIT_STATES]
+        lhs += np.einsum('iab,iac->bc', gk, gk)
+        rhs += np.einsum('iab,ia->b', gk, err)
+    return np.linalg.solve(lhs, rhs)
 
 
 def constant_velocity(zeta: np.ndarray, dt: np.ndarray) -> np.ndarray:

@@ -49,6 +49,7 @@ DEFAULTS: dict[str, Any] = {
     'prediction_horizon': 5.0,
     'prediction_step': 0.1,
     'prediction_rate': 5.0,
+    'prediction_disturbance_time': 0.5,
     'l_leak': 0.1,
     'gamma_d': 400.0,
     'l_min': 5.0,
@@ -115,6 +116,7 @@ def build_configs(values: dict[str, Any]) -> tuple[EngineConfig, OutputConfig]:
                 horizon=_number(v, 'prediction_horizon'),
                 step=_number(v, 'prediction_step'),
                 rate=_number(v, 'prediction_rate'),
+                disturbance_time=_number(v, 'prediction_disturbance_time'),
             ),
         )
         output = OutputConfig(str(v['output_ns']), _number(v, 'parameters_rate'))

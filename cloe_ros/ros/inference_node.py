@@ -159,6 +159,9 @@ class InferenceNode(Node):
             ('prediction_rate', DEFAULTS['prediction_rate'], describe(
                 'predictions per second of message time, Hz', float_range=(0.01, 1000.0),
                 **ro)),
+            ('prediction_disturbance_time', DEFAULTS['prediction_disturbance_time'], describe(
+                'window of the recent model-error fit and its fading time over the horizon, s '
+                '(0: steady-state offsets only)', float_range=(0.0, 10.0), **ro)),
             ('l_leak', DEFAULTS['l_leak'], describe(
                 'cloe_iv: leakage of the observer gain L, 1/s', float_range=(0.0, 1e3))),
             ('gamma_d', DEFAULTS['gamma_d'], describe(

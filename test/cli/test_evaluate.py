@@ -48,7 +48,8 @@ def test_evaluate_sim_identifies_and_predicts_like_the_true_model(tmp_path, caps
     calibration = result['status_calibration']
     assert set(calibration) == {'x_theta', 'y_phi', 'psi', 'z'}
     assert all(c['identified_but_wrong'] == 0.0 for c in calibration.values())
-    assert all(c['identified'] > 0.5 for c in calibration.values())
+    # (a row is reported identified only once it has stopped moving, from about 30 s on)
+    assert all(c['identified'] > 0.1 for c in calibration.values())
     assert 'reported identified' in printed
     for key in ('prediction', 'prediction_whole_run', 'prediction_with_plan'):
         check_score(result[key])

@@ -189,12 +189,12 @@ def load_flight(path: str | Path) -> dict[str, VehicleData]:
             patterns.append(
                 (ns, re.compile(rf'^{re.escape(ns)}/(.+)/(state|parameters|prediction)$'))
             )
-        outputs: dict[tuple[str, str, str], list[bytes]] = {}
+        outputs: set[tuple[str, str, str]] = set()  # (vehicle ns, output ns, kind)
         for name in topics:
             for ns, pattern in patterns:
                 m = pattern.match(name)
                 if m and m.group(1) not in (ODOM, REFERENCE):
-                    outputs[(ns, m.group(1), m.group(2))] = []
+                    outputs.add((ns, m.group(1), m.group(2)))
                     wanted[name] = []
         custom = dict(reader.custom_data)
         for topic, log_ns, raw in reader.messages([t for t in wanted if t in topics]):

@@ -19,6 +19,7 @@ from cloe_ros.io import messages
 from cloe_ros.io.reader import BagError, BagReader
 
 ODOM, REFERENCE, PLAN = 'odom', 'reference', 'reference_plan'
+DIAGNOSTICS = '/diagnostics'
 
 
 @dataclass
@@ -165,6 +166,24 @@ def _message_time(
     )
 
 
+def _algorithms_from_diagnostics(raws: list[bytes]) -> dict[tuple[str, str], str]:
+    """``(vehicle ns, output ns) -> algorithm`` from recorded ``/diagnostics``: an inference
+    node reports both per vehicle (``hardware_id`` the vehicle, '/' for none). The last report
+    wins (an algorithm can be changed at runtime); undecodable messages are skipped."""
+    found: dict[tuple[str, str], str] = {}
+    for raw in raws:
+        try:
+            _, statuses = messages.decode_diagnostics(raw)
+        except Exception:  # any codec failure: a malformed diagnostic must not lose the flight
+            continue
+        for status in statuses:
+            values = dict(status.values)
+            if 'algorithm' in values and 'output_ns' in values:
+                vehicle = '' if status.hardware_id == '/' else status.hardware_id
+                found[(vehicle, values['output_ns'])] = values['algorithm']
+    return found
+
+
 def load_flight(path: str | Path) -> dict[str, VehicleData]:
     """Every vehicle of the bag at ``path``, by namespace ('' for un-namespaced topics).
 
@@ -197,10 +216,13 @@ def load_flight(path: str | Path) -> dict[str, VehicleData]:
                     outputs.add((ns, m.group(1), m.group(2)))
                     wanted[name] = []
         custom = dict(reader.custom_data)
+        if topics.get(DIAGNOSTICS) == messages.DIAGNOSTIC_ARRAY:
+            wanted[DIAGNOSTICS] = []
         for topic, log_ns, raw in reader.messages([t for t in wanted if t in topics]):
             wanted[topic].append(bytes(raw))
             log_times.setdefault(topic, []).append(log_ns)
 
+    producers = _algorithms_from_diagnostics(wanted.get(DIAGNOSTICS, []))
     vehicles = {}
     for ns in namespaces:
         odom = states_from_odometry(wanted[f'{ns}/{ODOM}'])
@@ -216,7 +238,8 @@ def load_flight(path: str | Path) -> dict[str, VehicleData]:
             if vns != ns:
                 continue
             raws = wanted[f'{ns}/{out_ns}/{kind}']
-            algorithm = custom.get(f'cloe_ros.{out_ns}.algorithm')
+            algorithm = custom.get(f'cloe_ros.{out_ns}.algorithm',
+                                   producers.get((ns, out_ns)))  # fmt: skip
             out = data.outputs.setdefault(out_ns, InferenceOutput(out_ns, algorithm=algorithm))
             if kind == 'state' and topics[f'{ns}/{out_ns}/state'] == messages.ODOMETRY:
                 samples = [messages.decode_odometry(r) for r in raws]

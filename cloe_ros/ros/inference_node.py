@@ -389,6 +389,7 @@ class InferenceNode(Node):
             message += f'; prediction {note}'
         values = [
             ('algorithm', engine.config.estimator.algorithm),
+            ('output_ns', self.output_config.output_ns),
             *self._identification_values(vehicle),
             ('rate_hz', f'{engine.config.rate:g}'),
             ('steps_per_s', f'{steps_per_s:.1f}'),

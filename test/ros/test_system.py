@@ -59,6 +59,7 @@ from rclpy.executors import SingleThreadedExecutor
 from ros_helpers import NodeProcess, reserve_domain_id, spin_until
 
 from cloe_ros.core.model import PARAMETER_NAMES
+from cloe_ros.io.dataset import load_flight
 from cloe_ros.io.messages import decode_diagnostics
 from cloe_ros.io.outputs import PARAMETER_LABELS
 from cloe_ros.ros.common import qos
@@ -416,6 +417,11 @@ def test_sim_inference_recorder(system) -> None:
         level = status.level if isinstance(status.level, int) else status.level[0]
         assert level == 0 and values['rejected'] == '0', (alg, status.message, values)
         assert status.hardware_id == '/'
+        assert values['output_ns'] == alg
+    # ... which is how a report of this recording (no custom data) knows which algorithm made
+    # each output
+    assert {alg: out.algorithm for alg, out in load_flight(system.bag)[''].outputs.items()} == {
+        alg: alg for alg in algorithms}  # fmt: skip
 
 
 def test_use_sim_time(system) -> None:

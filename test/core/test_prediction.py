@@ -85,3 +85,44 @@ def test_invalid_disturbance_time_is_refused():
         PredictionConfig(disturbance_time=-1.0)
     with pytest.raises(ConfigError, match='disturbance time'):
         PredictionConfig(disturbance_time=float('nan'))
+
+
+def _predictions_around_a_time_jump(disturbance_time: float) -> dict[int, np.ndarray]:
+    """The sinking vehicle of the test above, whose odometry stops at 10.4 s and resumes at
+    12.4 s (a gap above ``max_gap``: the estimator restarts)."""
+    engine = VehicleEngine(EngineConfig(
+        estimator=EstimatorConfig('cloe_iv'),
+        prediction=PredictionConfig(disturbance_time=disturbance_time)))  # fmt: skip
+    out = {}
+    for k in [*range(1041), *range(1241, 1400)]:
+        t = k / 100
+        zeta = np.zeros(12)
+        zeta[10], zeta[11] = (1.0, 0.0) if t < 10 else (1.0 - 0.5 * (t - 10), -0.5)
+        stamp = T0 + k * NS // 100
+        p, q, v, w = state_to_odometry(zeta)
+        engine.add_odometry(OdometrySample(stamp, 'world', 'base_link', p, q, v, w))
+        engine.add_reference(PoseSample(stamp, 'world', np.array([0.0, 0.0, 1.0]),
+                                        yaw_quaternion(0.0)))  # fmt: skip
+        for e in engine.advance():
+            if e.prediction is not None:
+                out[e.stamp_ns] = e.prediction[1]
+    assert engine.stats.time_jumps == 1
+    return out
+
+
+def test_the_recent_offset_starts_over_after_a_time_jump():
+    """After a restart the window holds nothing from before the gap: until it has filled again
+    (0.5 s), predictions are those without the correction."""
+    with_offset = _predictions_around_a_time_jump(0.5)
+    without = _predictions_around_a_time_jump(0.0)
+    assert with_offset.keys() == without.keys()
+    restart = T0 + 1241 * NS // 100
+    for stamp in with_offset:
+        same = np.array_equal(with_offset[stamp], without[stamp])
+        if restart <= stamp < restart + NS // 2:
+            assert same, (stamp - restart) / NS
+    after = [s for s in with_offset if s >= restart + NS // 2]
+    before = [s for s in with_offset if T0 + 10 * NS + NS // 5 <= s < restart]
+    assert after and before
+    # the vehicle was sinking on both sides of the gap: the correction is back once it can be
+    assert not any(np.array_equal(with_offset[s], without[s]) for s in after + before)

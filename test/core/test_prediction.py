@@ -42,16 +42,17 @@ def test_fit_without_data_or_with_nan_gives_no_offset():
     assert not fit_reference_offset(ad, bd, states, np.zeros((4, 4))).any()
 
 
-def _predictions_of_a_vehicle_leaving_its_setpoint(disturbance_time: float):
+def _sinking_vehicle_predictions(
+    disturbance_time: float, steps
+) -> tuple[VehicleEngine, dict[int, np.ndarray]]:
     """A vehicle hovering at 1 m under a 1 m setpoint that, from t = 10 s, sinks at 0.5 m/s
-    while the setpoint stays (as a landing logged late); its predictions issued at 10.6 s."""
-    config = EngineConfig(
+    while the setpoint stays (as a landing logged late), sampled at 100 Hz on ``steps`` (indices
+    of 10 ms). Returns the engine and its predictions by issue stamp."""
+    engine = VehicleEngine(EngineConfig(
         estimator=EstimatorConfig('cloe_iv'),
-        prediction=PredictionConfig(disturbance_time=disturbance_time),
-    )
-    engine = VehicleEngine(config)
+        prediction=PredictionConfig(disturbance_time=disturbance_time)))  # fmt: skip
     out = {}
-    for k in range(1061):
+    for k in steps:
         t = k / 100
         zeta = np.zeros(12)
         zeta[10], zeta[11] = (1.0, 0.0) if t < 10 else (1.0 - 0.5 * (t - 10), -0.5)
@@ -63,6 +64,12 @@ def _predictions_of_a_vehicle_leaving_its_setpoint(disturbance_time: float):
         for e in engine.advance():
             if e.prediction is not None:
                 out[e.stamp_ns] = e.prediction[1]
+    return engine, out
+
+
+def _predictions_of_a_vehicle_leaving_its_setpoint(disturbance_time: float) -> np.ndarray:
+    """The sinking vehicle's last prediction, issued at 10.6 s."""
+    _, out = _sinking_vehicle_predictions(disturbance_time, range(1061))
     return out[max(out)]
 
 
@@ -88,24 +95,10 @@ def test_invalid_disturbance_time_is_refused():
 
 
 def _predictions_around_a_time_jump(disturbance_time: float) -> dict[int, np.ndarray]:
-    """The sinking vehicle of the test above, whose odometry stops at 10.4 s and resumes at
-    12.4 s (a gap above ``max_gap``: the estimator restarts)."""
-    engine = VehicleEngine(EngineConfig(
-        estimator=EstimatorConfig('cloe_iv'),
-        prediction=PredictionConfig(disturbance_time=disturbance_time)))  # fmt: skip
-    out = {}
-    for k in [*range(1041), *range(1241, 1400)]:
-        t = k / 100
-        zeta = np.zeros(12)
-        zeta[10], zeta[11] = (1.0, 0.0) if t < 10 else (1.0 - 0.5 * (t - 10), -0.5)
-        stamp = T0 + k * NS // 100
-        p, q, v, w = state_to_odometry(zeta)
-        engine.add_odometry(OdometrySample(stamp, 'world', 'base_link', p, q, v, w))
-        engine.add_reference(PoseSample(stamp, 'world', np.array([0.0, 0.0, 1.0]),
-                                        yaw_quaternion(0.0)))  # fmt: skip
-        for e in engine.advance():
-            if e.prediction is not None:
-                out[e.stamp_ns] = e.prediction[1]
+    """The sinking vehicle, whose odometry stops at 10.4 s and resumes at 12.4 s (a gap above
+    ``max_gap``: the estimator restarts)."""
+    engine, out = _sinking_vehicle_predictions(disturbance_time,
+                                               [*range(1041), *range(1241, 1400)])  # fmt: skip
     assert engine.stats.time_jumps == 1
     return out
 

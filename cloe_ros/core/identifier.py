@@ -46,7 +46,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
 from scipy.signal import cont2discrete
 
 from cloe_ros.core.model import (
@@ -56,6 +55,7 @@ from cloe_ros.core.model import (
     N_REFERENCES,
     N_STATES,
     PAPER_COUPLING,
+    discretise,
     system_matrices,
 )
 from cloe_ros.errors import ConfigError
@@ -423,13 +423,8 @@ class IvIdentifier:
 
     def _set_aux(self, which: np.ndarray) -> None:
         """Discretise the auxiliary model (exact ZOH) for the vehicles in ``which``."""
-        a, b = system_matrices(self.aux_theta[which], self.aux_coupling[which])
-        m = np.zeros((a.shape[0], N_STATES + N_REFERENCES, N_STATES + N_REFERENCES))
-        m[:, :N_STATES, :N_STATES] = a
-        m[:, :N_STATES, N_STATES:] = b
-        e = expm(m * self.h)
-        self._aux_ad[which] = e[:, :N_STATES, :N_STATES]
-        self._aux_bd[which] = e[:, :N_STATES, N_STATES:]
+        ad, bd = discretise(self.aux_theta[which], self.aux_coupling[which], self.h)
+        self._aux_ad[which], self._aux_bd[which] = ad, bd
 
     # ------------------------------------------------------------------------ step
 
@@ -584,7 +579,6 @@ class IvIdentifier:
             return out
         block = BLOCKS[j]
         idx = list(block.states)
-        n = len(idx)
         theta = self.model_theta[vs].copy()
         theta[:, BLOCK_SLICES[j]] = block_theta
         c = self.model_coupling[vs].copy()
@@ -592,12 +586,10 @@ class IvIdentifier:
         ok = self._hist_active[vs].all(axis=1) & block_is_stable(theta, c)[:, j]
         if not np.any(ok):
             return out
-        a, b = system_matrices(theta[ok], c[ok])
-        m = np.zeros((int(ok.sum()), n + 1, n + 1))
-        m[:, :n, :n] = a[:, idx][:, :, idx]
-        m[:, :n, n] = b[:, idx, block.reference]
-        e = expm(m * self.h)
-        ad_t, bd = np.swapaxes(e[:, :n, :n], 1, 2), e[:, None, :n, n]
+        # (the blocks are decoupled: the block of the full discretisation is the block's own)
+        ad, bd = discretise(theta[ok], c[ok], self.h)
+        ad_t = np.swapaxes(ad[:, idx][:, :, idx], 1, 2)
+        bd = bd[:, None, idx, block.reference]
         order = (self._hist_next + np.arange(w)) % w  # oldest first
         z = self._hist_z[vs[ok]][:, order][:, :, idx]  # (V, w, n)
         r = self._hist_r[vs[ok]][:, order, block.reference]  # (V, w)

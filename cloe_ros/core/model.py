@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import expm
 
 GRAVITY = 9.81
 """Gravitational acceleration used by the model and the simulator, m/s^2."""
@@ -175,6 +176,20 @@ def system_matrices(
         for k, block in enumerate(COUPLED_BLOCKS):
             a[..., block.states[1], block.states[2]] = coupling[..., k]
     return a, b
+
+
+def discretise(
+    theta: np.ndarray, coupling: np.ndarray | None, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation of ``zeta' = A zeta + B r`` over ``dt``:
+    ``(Ad (..., 12, 12), Bd (..., 12, 4))``, from ``expm`` of the augmented system (batched like
+    :func:`system_matrices`)."""
+    a, b = system_matrices(theta, coupling)
+    m = np.zeros((*a.shape[:-2], N_STATES + N_REFERENCES, N_STATES + N_REFERENCES))
+    m[..., :N_STATES, :N_STATES] = a
+    m[..., :N_STATES, N_STATES:] = b
+    e = expm(m * dt)
+    return e[..., :N_STATES, :N_STATES], e[..., :N_STATES, N_STATES:]
 
 
 def unstable_blocks(

@@ -21,9 +21,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
 
-from cloe_ros.core.model import BLOCKS, N_REFERENCES, N_STATES, system_matrices, unstable_blocks
+from cloe_ros.core.model import (
+    BLOCKS,
+    N_REFERENCES,
+    N_STATES,
+    discretise,
+    system_matrices,
+    unstable_blocks,
+)
 from cloe_ros.errors import ConfigError
 
 NS = 1_000_000_000
@@ -161,18 +167,6 @@ class Predictor:
             x = self._ad @ x + self._bd @ refs[k]
             out[k] = x
         return out
-
-
-def discretise(
-    theta: np.ndarray, coupling: np.ndarray, dt: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Exact zero-order-hold discretisation ``(Ad (12, 12), Bd (12, 4))`` of the model over
-    ``dt``."""
-    a, b = system_matrices(theta, coupling)
-    m = np.zeros((N_STATES + N_REFERENCES, N_STATES + N_REFERENCES))
-    m[:N_STATES, :N_STATES], m[:N_STATES, N_STATES:] = a, b
-    e = expm(m * dt)
-    return e[:N_STATES, :N_STATES], e[:N_STATES, N_STATES:]
 
 
 #: Outputs the offset is fitted on: x, y, yaw, z.

@@ -9,7 +9,8 @@ from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import generic_prior
 from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
-from cloe_ros.core.prediction import PredictionConfig, discretise, fit_reference_offset
+from cloe_ros.core.model import discretise
+from cloe_ros.core.prediction import PredictionConfig, fit_reference_offset
 from cloe_ros.core.samples import OdometrySample, PoseSample
 
 T0 = 1_700_000_000 * NS

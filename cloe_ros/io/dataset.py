@@ -58,7 +58,7 @@ class InferenceOutput:
     parameters: Series | None = None
     labels: list[str] = field(default_factory=list)
     prediction: Predictions | None = None
-    algorithm: str | None = None  # as `cloe infer` records it in the bag's custom_data
+    algorithm: str | None = None  # from the custom data of `cloe infer`, else /diagnostics
 
     @property
     def label(self) -> str:

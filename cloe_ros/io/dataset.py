@@ -168,8 +168,9 @@ def _message_time(
 
 def _algorithms_from_diagnostics(raws: list[bytes]) -> dict[tuple[str, str], str]:
     """``(vehicle ns, output ns) -> algorithm`` from recorded ``/diagnostics``: an inference
-    node reports both per vehicle (``hardware_id`` the vehicle, '/' for none). The last report
-    wins (an algorithm can be changed at runtime); undecodable messages are skipped."""
+    node reports both per vehicle (``hardware_id`` its namespace as recorded, '/' for the
+    root). The last report wins (an algorithm can be changed at runtime); undecodable messages
+    are skipped."""
     found: dict[tuple[str, str], str] = {}
     for raw in raws:
         try:

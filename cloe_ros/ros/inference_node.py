@@ -67,6 +67,7 @@ class InferenceNode(Node):
         self.encoders: dict[str, OutputEncoder] = {}
         self.publishers_: dict[str, object] = {}
         self.malformed: dict[str, int] = {}
+        self.vehicle_ns: dict[str, str] = {}
         for v in self.vehicles:
             self._make_vehicle(v)
             events = SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos(v))
@@ -254,6 +255,10 @@ class InferenceNode(Node):
             self.output_config, vehicle, self.engine_config.prediction.enabled
         )
         self.malformed.setdefault(vehicle, 0)
+        # the vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics
+        # reports, and how a report of the recording finds which algorithm made each output
+        odom = self.resolve_topic_name(vehicle_topic(vehicle, 'odom'), only_expand=True)
+        self.vehicle_ns[vehicle] = odom[: -len('/odom')] or '/'
 
     # -------------------------------------------------------------------------- callbacks
 
@@ -410,8 +415,8 @@ class InferenceNode(Node):
             ('predictions_withheld', str(s.predictions_withheld)),
             ('plans_accepted', str(s.plans_accepted)),
         ]
-        return Status(level, f'{self.get_name()}: {vehicle or "/"}', message, vehicle or '/',
-                      tuple(values))  # fmt: skip
+        ns = self.vehicle_ns[vehicle]
+        return Status(level, f'{self.get_name()}: {ns}', message, ns, tuple(values))
 
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()

@@ -265,3 +265,27 @@ def test_integer_overrides_for_float_parameters_are_accepted(context):
         assert inf.get_parameter('rate').type_ == Parameter.Type.DOUBLE
     finally:
         inf.destroy_node()
+
+
+@pytest.mark.parametrize(('namespace', 'vehicles', 'expected'), [
+    ('/', [], ['/']),
+    ('/cf1', [], ['/cf1']),  # `__ns:=/cf1`, no vehicles
+    ('/', ['uav1', '/uav2'], ['/uav1', '/uav2']),
+    ('/fleet', ['uav1', '/uav2'], ['/fleet/uav1', '/uav2']),
+])  # fmt: skip
+def test_diagnostics_name_each_vehicle_by_its_recorded_namespace(context, namespace, vehicles,
+                                                                  expected):  # fmt: skip
+    """/diagnostics reports each vehicle under the namespace its topics have in a recording, which
+    is how a report of the recording finds the algorithm behind each output."""
+    overrides = [Parameter('vehicles', value=vehicles)] if vehicles else []
+    inf = InferenceNode(context=context, namespace=namespace, parameter_overrides=overrides)
+    try:
+        statuses = [inf.vehicle_status(v, 0.0) for v in inf.vehicles]
+        assert [s.hardware_id for s in statuses] == expected
+        assert [s.name for s in statuses] == [f'cloe_inference: {ns}' for ns in expected]
+        topics = {name for name, _ in inf.get_subscriber_names_and_types_by_node(
+            'cloe_inference', namespace)}  # fmt: skip
+        for ns in expected:
+            assert f'{ns.rstrip("/")}/odom' in topics
+    finally:
+        inf.destroy_node()

@@ -8,7 +8,6 @@ status 1 and a message saying what is wrong.
 from __future__ import annotations
 
 import signal
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -84,7 +83,8 @@ def ros():
 
 
 class Arrivals:
-    """Raw subscriptions keeping every message with its arrival time (perf_counter)."""
+    """Raw subscriptions keeping every message with the time it was sent (s, the middleware's
+    source timestamp: the player's timing, whatever the delay until this process takes it)."""
 
     def __init__(self, node, topics: dict[str, type]) -> None:
         self.msgs: dict[str, list[tuple[float, bytes]]] = {t: [] for t in topics}
@@ -92,7 +92,9 @@ class Arrivals:
             topic: node.create_subscription(
                 cls,
                 topic,
-                lambda raw, t=topic: self.msgs[t].append((time.perf_counter(), raw)),
+                lambda raw, info, t=topic: self.msgs[t].append(
+                    (info['source_timestamp'] / 1e9, raw)
+                ),
                 qos(reliable=True, depth=10_000),
                 raw=True,
             )
@@ -164,20 +166,20 @@ def test_plays_every_message_with_recorded_timing(ros, tmp_path, b2_messages):
     for (_, got), (_, want) in zip(arrivals.msgs['/reference'], b2_messages['/reference']):
         assert_same_pose(got, want)
 
-    # timing: arrival time against log time / rate, over both topics
+    # timing: send time against log time / rate, over both topics
     log = np.array(
         [t for tp in ('/odom', '/reference') for t, _ in b2_messages[tp]], dtype=np.int64
     )
-    arrival = np.array([t for tp in ('/odom', '/reference') for t, _ in arrivals.msgs[tp]])
+    sent = np.array([t for tp in ('/odom', '/reference') for t, _ in arrivals.msgs[tp]])
     bag_s = (log - log.min()) / 1e9
     recorded = bag_s.max() / rate  # 27.25 s / 10
-    assert arrival.max() - arrival.min() == pytest.approx(recorded, rel=0.10)
-    slope, intercept = np.polyfit(bag_s, arrival, 1)
+    assert sent.max() - sent.min() == pytest.approx(recorded, rel=0.10)
+    slope, intercept = np.polyfit(bag_s, sent, 1)
     assert slope == pytest.approx(1.0 / rate, rel=0.10)
-    assert np.corrcoef(bag_s, arrival)[0, 1] > 0.999
-    residual_ms = (arrival - (slope * bag_s + intercept)) * 1e3
+    assert np.corrcoef(bag_s, sent)[0, 1] > 0.999
+    residual_ms = (sent - (slope * bag_s + intercept)) * 1e3
     print(
-        f'arrival vs log time / rate: span {arrival.max() - arrival.min():.3f} s '
+        f'send time vs log time / rate: span {sent.max() - sent.min():.3f} s '
         f'(recorded {recorded:.3f} s), slope {slope * rate:.4f} x 1/rate, residual std '
         f'{residual_ms.std():.3f} ms, max |residual| {np.abs(residual_ms).max():.3f} ms'
     )
@@ -209,7 +211,7 @@ def test_publishes_clock(ros, tmp_path, b2_messages):
     assert matched and status == 0, output(player)
     with BagReader(B2) as bag:
         start_ns, end_ns = bag.start_ns, bag.end_ns
-    arrival = np.array([t for t, _ in arrivals.msgs['/clock']])
+    sent = np.array([t for t, _ in arrivals.msgs['/clock']])
     clock = np.array([decode_clock(raw) for _, raw in arrivals.msgs['/clock']], dtype=np.int64)
     assert ref.count('/reference') == len(b2_messages['/reference'])
     # about one tick per 1/clock_rate of wall time over the bag's duration / rate
@@ -218,7 +220,7 @@ def test_publishes_clock(ros, tmp_path, b2_messages):
     assert np.all(np.diff(clock) >= 0)  # monotonic
     assert clock[0] == start_ns and clock[-1] == end_ns  # spans the bag's log times
     assert np.all(np.diff(clock)[:-1] > 0)  # advancing (only the final tick may repeat)
-    slope = np.polyfit(arrival, (clock - start_ns) / 1e9, 1)[0]
+    slope = np.polyfit(sent, (clock - start_ns) / 1e9, 1)[0]
     assert slope == pytest.approx(rate, rel=0.05)  # bag seconds per wall second
 
 

@@ -83,32 +83,33 @@ class Predictor:
     def __init__(self, config: PredictionConfig) -> None:
         self.config = config
         self._key: bytes | None = None
-        self._ad = np.eye(N_STATES)
-        self._bd = np.zeros((N_STATES, N_REFERENCES))
         self._stable = False
+        # (ad, bd) of the current model per step: the predictions' step, and the recent-offset
+        # fit's, which is the same one whenever the rate is a multiple of 1 / step
+        self._discrete: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._gains_key: bytes | None = None
         self._gains = np.ones(N_REFERENCES)
-        self._fit_key: bytes | None = None
-        self._fit_ad, self._fit_bd = self._ad, self._bd
 
-    def _discretise(self, theta: np.ndarray, coupling: np.ndarray) -> bool:
+    def _discretise(
+        self, theta: np.ndarray, coupling: np.ndarray, dt: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The model's exact discretisation over ``dt`` (cached for the current model)."""
         key = np.concatenate([theta, coupling]).tobytes()
         if key != self._key:
             self._key = key
             self._stable = not unstable_blocks(theta, coupling)
-            self._ad, self._bd = discretise(theta, coupling, self.config.step)
-        return self._stable
+            self._discrete.clear()
+        if dt not in self._discrete:
+            self._discrete[dt] = discretise(theta, coupling, dt)
+        return self._discrete[dt]
 
     def recent_offset(
         self, theta: np.ndarray, coupling: np.ndarray, states: np.ndarray, refs: np.ndarray,
         dt: float,
     ) -> np.ndarray:  # fmt: skip
         """:func:`fit_reference_offset` with this model, for states sampled every ``dt`` s."""
-        key = np.concatenate([theta, coupling, [dt]]).tobytes()
-        if key != self._fit_key:
-            self._fit_key = key
-            self._fit_ad, self._fit_bd = discretise(theta, coupling, dt)
-        return fit_reference_offset(self._fit_ad, self._fit_bd, states, refs)
+        ad, bd = self._discretise(np.asarray(theta, float), np.asarray(coupling, float), dt)
+        return fit_reference_offset(ad, bd, states, refs)
 
     def static_gains(self, theta: np.ndarray, coupling: np.ndarray) -> np.ndarray:
         """Steady-state position (yaw) per unit reference, for each reference channel (4,)."""
@@ -149,7 +150,9 @@ class Predictor:
                 offset.
 
         """
-        if not self._discretise(np.asarray(theta, float), np.asarray(coupling, float)):
+        ad, bd = self._discretise(np.asarray(theta, float), np.asarray(coupling, float),
+                                  self.config.step)  # fmt: skip
+        if not self._stable:
             return None
         n = self.config.n_poses
         refs = np.broadcast_to(r_now, (n, N_REFERENCES)).copy()
@@ -164,7 +167,7 @@ class Predictor:
         out = np.empty((n, N_STATES))
         x = np.asarray(zeta0, dtype=float)
         for k in range(n):
-            x = self._ad @ x + self._bd @ refs[k]
+            x = ad @ x + bd @ refs[k]
             out[k] = x
         return out
 

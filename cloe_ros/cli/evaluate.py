@@ -89,6 +89,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=5.0,
         help='score predictions issued this many s after the start (default: 5)',
     )
+    b.add_argument(
+        '--score-to',
+        type=float,
+        default=np.inf,
+        help='score only predictions issued and reaching their horizon by this many s after the '
+        'start (default: the end), e.g. to leave out a landing',
+    )
     _common(b)
     p.set_defaults(run=run)  # fmt: skip
 
@@ -289,6 +296,9 @@ def run_bag(args) -> int:
     from cloe_ros.io.dataset import load_flight
     from cloe_ros.io.reader import BagError
 
+    if not args.score_to > args.score_from:
+        raise CliError(f'--score-to ({args.score_to:g} s) must be after --score-from '
+                       f'({args.score_from:g} s)')  # fmt: skip
     try:
         vehicles = load_flight(args.bag)
     except BagError as err:
@@ -306,6 +316,8 @@ def run_bag(args) -> int:
     t, zeta, ref = t_odom[keep], data.odom.values[keep], data.reference.values[idx[keep]]
     bar = ProgressBar(enabled=not args.quiet)
     out = {'bag': str(args.bag), 'vehicle': ns, 'plan_from_reference': args.plan_from_reference,
+           'score_from': args.score_from,
+           'score_to': args.score_to if np.isfinite(args.score_to) else None,
            'algorithms': {}}  # fmt: skip
     print(f'{args.bag} ({ns or "/"}): {t[-1] - t[0]:.1f} s, {len(t)} odometry samples'
           + (', recorded future references given as the plan' if args.plan_from_reference
@@ -328,22 +340,26 @@ def run_bag(args) -> int:
         # a landed vehicle (motors off, often under a zero setpoint) follows no closed loop
         ground = engine_config.estimator.ground_altitude
 
+        def in_window(times):
+            return times <= args.score_to
+
         def in_flight(times, ground=ground):
             z = np.interp(times, t, zeta[:, 10], left=np.nan, right=np.nan)
             zd = np.interp(times, t, ref[:, 3], left=np.nan, right=np.nan)
-            return (z > 0.2) & (zd > ground)
+            return (z > 0.2) & (zd > ground) & in_window(times)
 
         step = engine_config.prediction.step
-        score = score_predictions(run, t, zeta, step, HORIZONS, t_from=args.score_from,
-                                  valid=in_flight)  # fmt: skip
-        score_all = score_predictions(run, t, zeta, step, HORIZONS, t_from=args.score_from)
+        window = {'t_from': args.score_from, 't_to': args.score_to}
+        score = score_predictions(run, t, zeta, step, HORIZONS, **window, valid=in_flight)
+        score_all = score_predictions(run, t, zeta, step, HORIZONS, **window, valid=in_window)
         print(f'\n{algorithm}:')
         for line in _identification_summary(run):
             print(line)
         print(format_prediction(score, 'against the measured positions, issued and landing in '
                                        'flight'))  # fmt: skip
+        until = f' to {args.score_to:g} s' if np.isfinite(args.score_to) else ''
         print(format_prediction(score_all, f'against the measured positions, every prediction '
-                                           f'from t >= {args.score_from:g} s'))  # fmt: skip
+                                           f'from t >= {args.score_from:g} s{until}'))  # fmt: skip
         out['algorithms'][algorithm] = {'prediction_in_flight': _score_dict(score),
                                         'prediction_all': _score_dict(score_all),
                                         'coupling_final': run.coupling[-1].tolist()}  # fmt: skip

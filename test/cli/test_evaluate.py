@@ -74,6 +74,27 @@ def test_evaluate_bag_scores_a_recording(tmp_path, capsys):
     check_score(scores['prediction_all'])
 
 
+def test_evaluate_bag_scores_only_up_to_score_to(tmp_path, capsys):
+    """``--score-to T`` keeps a prediction only if it is issued and reaches its horizon by T: the
+    5 s predictions kept with T are the 1 s ones kept with T - 4 s (same issue times)."""
+
+    def counts(score_to: float) -> np.ndarray:
+        out = tmp_path / f'{score_to:g}.json'
+        status = main(['evaluate', 'bag', str(SAMPLES / 'position'), '--algorithms', 'cloe_iv',
+                       '--score-to', f'{score_to:g}', '-q', '--json', str(out)])  # fmt: skip
+        assert status == 0
+        result = json.loads(out.read_text())
+        assert result['score_to'] == score_to
+        for key in ('prediction_in_flight', 'prediction_all'):
+            check_score(result['algorithms']['cloe_iv'][key])
+        return np.array(result['algorithms']['cloe_iv']['prediction_in_flight']['count'])
+
+    late, early = counts(30.0), counts(26.0)
+    assert 'from t >= 5 s to 26 s' in capsys.readouterr().out
+    assert late[3] == early[1]
+    assert late[1] - late[3] == round(4 / 0.2)  # predictions at 5 Hz
+
+
 @pytest.mark.parametrize(
     ('args', 'expected'),
     [
@@ -81,6 +102,8 @@ def test_evaluate_bag_scores_a_recording(tmp_path, capsys):
         (['evaluate', 'bag', str(SAMPLES / 'position'), '--vehicle', '/uav9'],
          "no vehicle '/uav9'"),
         (['evaluate', 'sim', '--duration', '-1'], 'duration'),
+        (['evaluate', 'bag', str(SAMPLES / 'position'), '--score-to', '4'],
+         '--score-to (4 s) must be after --score-from (5 s)'),
     ],
 )  # fmt: skip
 def test_evaluate_refuses_bad_input_with_one_error_line(args, expected, capsys):

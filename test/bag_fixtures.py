@@ -1,8 +1,9 @@
 """Bags of simulated flights for tests, written without ROS, as the ``quadrotor_sim`` node would.
 
 :func:`write_sim_bag` simulates a scenario with :class:`QuadrotorSimulator` and writes the samples
-as a rosbag2/MCAP bag in the layout of DESIGN §6: ``<ns>/odom`` (noisy), ``<ns>/reference``,
-``<ns>/ground_truth`` (noise-free) and ``<ns>/true_parameters`` (labels ``theta.<name>``).
+as a rosbag2/MCAP bag in the layout of the interface contract (README): ``<ns>/odom`` (noisy),
+``<ns>/reference``, ``<ns>/ground_truth`` (noise-free) and ``<ns>/true_parameters`` (labels
+``theta.<name>``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """``cloe_iv``: the CLOE-SM observer with an identifier that converges, and a bounded gain L.
 
-The observer is CLOE-SM's (DESIGN §3), semi-implicit in ``L e``::
+The observer is CLOE-SM's (docs/method.md), semi-implicit in ``L e``::
 
     zeta_hat' = A(Theta_m, c_m) zeta_hat + B(Theta_m) r + L e + Lambda |e|^p sign(e)
 

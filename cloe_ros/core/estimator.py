@@ -1,4 +1,4 @@
-"""CLOE and CLOE-SM estimator-identifiers (paper §4-5, DESIGN §3), batched over N vehicles.
+"""CLOE and CLOE-SM estimator-identifiers (paper §4-5, docs/method.md), batched over N vehicles.
 
 With ``e = zeta - zeta_hat`` (measured minus estimated), for every vehicle::
 
@@ -60,7 +60,7 @@ def _per_state(four_chain: Sequence[float], two_chain: Sequence[float]) -> tuple
 
 #: Sliding-mode gains alpha of the paper's Table 1, per state.
 SM_GAINS_TABLE1 = _per_state((0.12, 0.18, 0.24, 0.30), (0.24, 0.30))
-#: Sliding-mode exponents p, decreasing along each chain (DESIGN §3), per state.
+#: Sliding-mode exponents p, decreasing along each chain (docs/method.md), per state.
 SM_EXPONENTS = _per_state((0.75, 0.5, 0.25, 0.0), (0.5, 0.0))
 
 

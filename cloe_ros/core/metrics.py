@@ -1,4 +1,4 @@
-"""Performance metrics of the paper's §6.1.3 and DESIGN §5.
+"""Performance metrics of the paper's §6.1.3 (docs/method.md, "Metrics").
 
 Errors are ``e = zeta - zeta_hat`` sampled at times ``t``; arrays have time as their first axis and
 the 12 states as their last (any axes in between, e.g. vehicles, are kept).

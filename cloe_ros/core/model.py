@@ -1,4 +1,4 @@
-"""The linearized closed-loop quadrotor model identified by CLOE (DESIGN §2).
+"""The linearized closed-loop quadrotor model identified by CLOE (docs/method.md).
 
 State, in this order everywhere in the package::
 

@@ -1,4 +1,6 @@
-"""Anticipation: integrate an identified closed loop ahead of the current estimate (DESIGN §4).
+"""Anticipation: integrate an identified closed loop ahead of the current estimate.
+
+(docs/identifier.md, "Anticipation".)
 
 ``zeta' = A(Theta, c) zeta + B(Theta) r`` from ``zeta_hat(t)`` over the horizon, with the reference
 held at its latest value, or following a plan of future references when one is known. The model is

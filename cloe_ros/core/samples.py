@@ -1,4 +1,4 @@
-"""Plain-array samples of the contract's input topics (DESIGN §6), independent of any ROS library.
+"""Plain-array samples of the contract's input topics (README), independent of any ROS library.
 
 The io layer fills them from CDR bytes; the engine consumes them.
 """

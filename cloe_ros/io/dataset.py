@@ -1,9 +1,10 @@
 """A bag as per-vehicle time series: what reports, the demo and the evaluation work on.
 
-For every vehicle namespace with ``odom`` and ``reference`` topics (DESIGN §6): the measured
-states, the references, and when present the ground truth and true parameters of a simulation
-(``ground_truth``, ``true_parameters``) and the outputs of inference runs (``<output_ns>/state``,
-``<output_ns>/parameters``, ``<output_ns>/prediction``) found under the vehicle's namespace.
+For every vehicle namespace with ``odom`` and ``reference`` topics (README, "Interface
+contract"): the measured states, the references, and when present the ground truth and true
+parameters of a simulation (``ground_truth``, ``true_parameters``) and the outputs of inference
+runs (``<output_ns>/state``, ``<output_ns>/parameters``, ``<output_ns>/prediction``) found under
+the vehicle's namespace.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""CDR <-> samples for the topics of the interface contract (DESIGN §6), without rclpy.
+"""CDR <-> samples for the topics of the interface contract (README), without rclpy.
 
 The nodes (raw subscriptions and raw publishing) and the offline tools (bags) both go through these
 functions, so the same bytes give the same samples and the same estimates give the same bytes.

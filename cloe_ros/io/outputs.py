@@ -1,4 +1,4 @@
-"""Estimates -> output messages of the contract (DESIGN §6), shared by the node and ``cloe infer``.
+"""Estimates -> output messages of the interface contract, shared by the node and ``cloe infer``.
 
 Both call :meth:`OutputEncoder.encode` on the same sequence of estimates, so they emit the same
 messages with the same stamps: ``<ns>/<output_ns>/state`` at every step, ``<ns>/<output_ns>/

@@ -22,7 +22,7 @@ THETA = true_parameters()
 
 
 def reference_step(zeta_hat, theta_hat, gain_l, zeta, r, h, cfg, implicit=True):
-    """DESIGN §3 written out for one vehicle with explicit matrices (the test's own version)."""
+    """docs/method.md written out for one vehicle, explicit matrices (the test's own version)."""
     a, b = system_matrices(theta_hat)
     e = zeta - zeta_hat
     lam = np.zeros(12) if cfg.algorithm == 'cloe' else np.array(cfg.sm_gains)

@@ -354,7 +354,7 @@ def test_sim_inference_recorder(system) -> None:
         '/cloe_iv/prediction': {PATH},
     }  # fmt: skip
     # cloe_sm's predictions are withheld while its identified model is unstable (the paper's
-    # identifier does not converge, DESIGN §3): its topic may hold nothing
+    # identifier does not converge, docs/method.md): its topic may hold nothing
     assert {t: types[t] for t in types if t != '/cloe_sm/prediction'} == expected
     assert types.get('/cloe_sm/prediction', {PATH}) == {PATH}
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from cloe_ros.cli.errors import CliError
+from cloe_ros.cli.outputs import check_new_file
 from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.core.engine import NS
 from cloe_ros.core.evaluation import (
@@ -41,6 +42,14 @@ from cloe_ros.core.simulator import (
 from cloe_ros.io.config import ALGORITHMS, build_configs, load_settings
 
 BLOCK_NAMES = [b.name for b in BLOCKS]
+#: Estimators and rate when neither the command line nor a --config file gives them.
+DEFAULT_ALGORITHMS = {'sim': ['cloe_sm', 'cloe_iv'], 'bag': ['cloe_iv']}
+DEFAULT_RATE = 100.0
+DEFAULT_SCORE_FROM_SIM = 30.0
+#: Why the engine withholds a prediction.
+WITHHELD_BECAUSE = (
+    'the identified model had an unstable block, and unstable dynamics are never extrapolated'
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -53,31 +62,35 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s = ev.add_parser('sim', help='a simulated scenario, truth known')
     s.add_argument('--scenario', default='position', choices=sorted(SCENARIOS))
     s.add_argument('--duration', type=float, default=90.0, help='simulated s (default: 90)')
-    s.add_argument('--algorithms', nargs='+', default=['cloe_sm', 'cloe_iv'], choices=ALGORITHMS)
-    s.add_argument('--rate', type=float, default=100.0, help='odometry and estimator rate, Hz')
+    _algorithms(s, 'odometry and estimator rate, Hz', 'sim')
     s.add_argument(
         '--noise', action='store_true', help='measurement noise: 2 mm, 1 cm/s, 2 mrad, 0.01 rad/s'
     )
     s.add_argument('--no-disturbance', action='store_true', help='without the §6.1 disturbances')
-    s.add_argument('--seed', type=int, default=0, help='noise seed')
+    s.add_argument('--seed', type=int, default=0, help='noise seed (>= 0; default: 0)')
     s.add_argument(
         '--score-from',
         type=float,
-        default=30.0,
-        help='score predictions issued after this time, s (default: 30)',
+        default=None,
+        help='score predictions issued after this time, s; it must lie within the run '
+        f'(default: {DEFAULT_SCORE_FROM_SIM:g})',
     )
     s.add_argument(
         '--segments',
         type=float,
         default=0.0,
-        help='also score the predictions per segment of this many s (long runs)',
+        help='also score the predictions per segment of this many s (long runs; default 0: no '
+        'segments)',
     )
     _common(s)
     b = ev.add_parser('bag', help='a recorded flight: predictions against what happened next')
     b.add_argument('bag', type=Path)
-    b.add_argument('--vehicle', default=None, help='vehicle namespace (default: the first)')
-    b.add_argument('--algorithms', nargs='+', default=['cloe_iv'], choices=ALGORITHMS)
-    b.add_argument('--rate', type=float, default=100.0, help='estimator rate, Hz')
+    b.add_argument(
+        '--vehicle',
+        default=None,
+        help="vehicle namespace, '/' for the un-namespaced one (default: the first)",
+    )
+    _algorithms(b, 'estimator rate, Hz', 'bag')
     b.add_argument(
         '--plan-from-reference',
         action='store_true',
@@ -100,25 +113,77 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run)  # fmt: skip
 
 
+def _algorithms(p: argparse.ArgumentParser, rate: str, target: str) -> None:
+    p.add_argument(
+        '--algorithms',
+        nargs='+',
+        choices=ALGORITHMS,
+        help="estimators to run (default: the --config file's algorithm, else "
+        f'{" ".join(DEFAULT_ALGORITHMS[target])})',
+    )
+    p.add_argument(
+        '--rate',
+        type=float,
+        help=f"{rate} (default: the --config file's rate, else {DEFAULT_RATE:g})",
+    )
+
+
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument('--config', type=Path, help="YAML with the node's parameters")
-    p.add_argument('--json', type=Path, help='also write the numbers to this JSON file')
+    p.add_argument(
+        '--config',
+        type=Path,
+        help="YAML with the node's parameters (as for `cloe infer`); its algorithm and rate apply "
+        'unless --algorithms / --rate are given',
+    )
+    p.add_argument('--json', type=Path, help='also write the numbers to this JSON file (new)')
+    p.add_argument('--force', action='store_true', help='replace the --json file if it exists')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
 
 
-def _settings(args, algorithm: str) -> dict:
+def resolve_settings(args: argparse.Namespace) -> dict:
+    """The --config file's settings; sets ``args.algorithms`` and ``args.rate`` from it where the
+    command line does not give them (else the defaults). Refuses bad values before any work."""
     settings = load_settings(args.config) if args.config else {}
     settings = {k: v for k, v in settings.items() if k != 'vehicles'}
-    settings.update(algorithm=algorithm, rate=args.rate)
+    build_configs(settings)
+    if args.algorithms is None:
+        args.algorithms = (
+            [settings['algorithm']] if 'algorithm' in settings else DEFAULT_ALGORITHMS[args.target]
+        )
+    if args.rate is None:
+        args.rate = float(settings.get('rate', DEFAULT_RATE))
+    for algorithm in args.algorithms:
+        build_configs(_settings(settings, algorithm, args.rate))
     return settings
 
 
-def format_prediction(score: PredictionScore, label: str) -> str:
+def _settings(settings: dict, algorithm: str, rate: float) -> dict:
+    return {**settings, 'algorithm': algorithm, 'rate': rate}
+
+
+def _why_none(score: PredictionScore, run: Run) -> str:
+    """Why a prediction table is empty, in words."""
+    withheld = f'{run.withheld} withheld because {WITHHELD_BECAUSE}'
+    if not len(run.pred_t):
+        if run.withheld:
+            return f'every prediction of the run ({run.withheld}) was withheld: {WITHHELD_BECAUSE}'
+        return 'the run issued no prediction'
+    issued = int(np.count_nonzero((run.pred_t >= score.t_from) & (run.pred_t <= score.t_to)))
+    span = (
+        f'the run issued {len(run.pred_t)} predictions, from {run.pred_t[0]:.1f} to '
+        f'{run.pred_t[-1]:.1f} s' + (f', and {withheld}' if run.withheld else '')
+    )
+    if not issued:
+        return f'no prediction was issued in the scored window ({span})'
+    return (
+        f'{issued} predictions were issued in the scored window, but none reached a horizon '
+        'inside the scored data (past the end of the data or of the window, or out of flight)'
+    )
+
+
+def format_prediction(score: PredictionScore, label: str, run: Run) -> str:
     if not score.count.any():
-        return (
-            f'  prediction, {label}: none; {score.withheld} withheld (the identified model '
-            'has an unstable block, and unstable dynamics are never extrapolated)'
-        )
+        return f'  prediction, {label}: none scored: {_why_none(score, run)}'
     lines = [
         f'  prediction RMSE [m], {label} ({int(score.count[0])} predictions issued in '
         f'[{score.t_from:.0f}, {score.t_to:.0f}] s; {score.withheld} withheld)',
@@ -176,9 +241,32 @@ def _identification_summary(run: Run) -> list[str]:
     return lines
 
 
-def run_sim(args) -> int:
+def _check_sim_args(args) -> None:
+    """Refuse, before any work, options that cannot give a run or a score."""
     if not 10.0 <= args.duration <= 20000.0:
         raise CliError(f'--duration must be within [10, 20000] s, got {args.duration:g}')
+    if args.seed < 0:
+        raise CliError(f'--seed must be a non-negative integer, got {args.seed}')
+    if not args.segments >= 0.0:
+        raise CliError(f'--segments must be >= 0 s (0: no segments), got {args.segments:g}')
+    given = args.score_from is not None
+    if not given:
+        args.score_from = DEFAULT_SCORE_FROM_SIM
+    last = args.duration - HORIZONS[0]  # the last issue time that reaches a horizon in the run
+    if not args.score_from <= last:
+        raise CliError(
+            f'--score-from {args.score_from:g} s{"" if given else " (the default)"} lies beyond '
+            f'the {args.duration:g} s run: no prediction issued from then on reaches even the '
+            f'{HORIZONS[0]:g} s horizon before the end; give --score-from {last:g} or less, or a '
+            'longer --duration'
+        )
+
+
+def run_sim(args) -> int:
+    _check_sim_args(args)
+    base = resolve_settings(args)
+    if args.json:
+        check_new_file(args.json, args.force, '--json')
     scenario = SCENARIOS[args.scenario]
     sim_rate = 500.0
     if (
@@ -206,7 +294,7 @@ def run_sim(args) -> int:
            'rate_hz': args.rate, 'algorithms': {}}  # fmt: skip
     checkpoints = [c for c in (10, 20, 30, 45, 60, 90, 120, 200, 500, 1000) if c <= args.duration]
     for algorithm in args.algorithms:
-        engine_config, _ = build_configs(_settings(args, algorithm))
+        engine_config, _ = build_configs(_settings(base, algorithm, args.rate))
         horizon = engine_config.prediction.horizon
 
         def known_future(now, horizon=horizon):
@@ -246,16 +334,16 @@ def run_sim(args) -> int:
                 for b, c in calibration.items()))  # fmt: skip
         score = score_predictions(run, truth_t, truth, step, HORIZONS, t_from=args.score_from,
                                   true_model=(theta_true, PAPER_COUPLING))  # fmt: skip
-        print(format_prediction(score, f'reference held, from t >= {args.score_from:g} s'))
+        print(format_prediction(score, f'reference held, from t >= {args.score_from:g} s', run))
         score_all = score_predictions(run, truth_t, truth, step, HORIZONS, t_from=0.0,
                                       true_model=(theta_true, PAPER_COUPLING))  # fmt: skip
-        print(format_prediction(score_all, 'reference held, whole run'))
+        print(format_prediction(score_all, 'reference held, whole run', run))
         score_plan = score_predictions(run_plan, truth_t, truth, step, HORIZONS,
                                        t_from=args.score_from,
                                        true_model=(theta_true, PAPER_COUPLING),
                                        plans=known_future)  # fmt: skip
-        print(format_prediction(score_plan, 'known future reference as reference_plan, '
-                                            f'from t >= {args.score_from:g} s'))  # fmt: skip
+        label = f'known future reference as reference_plan, from t >= {args.score_from:g} s'
+        print(format_prediction(score_plan, label, run_plan))
         entry = {
             'parameter_error': {str(k): v for k, v in perr.items()},
             'prediction': _score_dict(score),
@@ -299,14 +387,21 @@ def run_bag(args) -> int:
     if not args.score_to > args.score_from:
         raise CliError(f'--score-to ({args.score_to:g} s) must be after --score-from '
                        f'({args.score_from:g} s)')  # fmt: skip
+    base = resolve_settings(args)
+    if args.json:
+        check_new_file(args.json, args.force, '--json')
     try:
         vehicles = load_flight(args.bag)
     except BagError as err:
         raise CliError(str(err)) from err
-    ns = args.vehicle if args.vehicle is not None else sorted(vehicles)[0]
+    # '/' (or '') is the un-namespaced vehicle, stored as '' (as `cloe infer --vehicles /`)
+    ns = args.vehicle.rstrip('/') if args.vehicle is not None else sorted(vehicles)[0]
     if ns not in vehicles:
-        raise CliError(f'no vehicle {ns!r} in {args.bag}; found: ' + ', '.join(vehicles))
+        raise CliError(f'no vehicle {args.vehicle!r} in {args.bag}; found: '
+                       + ', '.join(v or '/' for v in sorted(vehicles)))  # fmt: skip
     data = vehicles[ns]
+    if not len(data.odom) or not len(data.reference):
+        raise CliError(f'{args.bag} ({ns or "/"}): no messages on its odom or reference topic')
     t0 = int(min(data.odom.t_ns[0], data.reference.t_ns[0]))
     t_odom = (data.odom.t_ns - t0) / NS
     t_ref = (data.reference.t_ns - t0) / NS
@@ -314,16 +409,26 @@ def run_bag(args) -> int:
     idx = np.searchsorted(t_ref, t_odom, side='right') - 1
     keep = idx >= 0
     t, zeta, ref = t_odom[keep], data.odom.values[keep], data.reference.values[idx[keep]]
+    if not len(t):
+        raise CliError(f'{args.bag} ({ns or "/"}): no odometry after the first reference')
+    if not args.score_from <= t[-1] - HORIZONS[0]:
+        raise CliError(
+            f'--score-from {args.score_from:g} s lies beyond the recording: its odometry ends '
+            f'{t[-1]:.1f} s after the start, and a prediction needs {HORIZONS[0]:g} s to reach '
+            f'its first horizon; give --score-from {t[-1] - HORIZONS[0]:.1f} or less'
+        )
     bar = ProgressBar(enabled=not args.quiet)
-    out = {'bag': str(args.bag), 'vehicle': ns, 'plan_from_reference': args.plan_from_reference,
+    out = {'bag': str(args.bag), 'vehicle': ns or '/', 'rate_hz': args.rate,
+           'plan_from_reference': args.plan_from_reference,
            'score_from': args.score_from,
            'score_to': args.score_to if np.isfinite(args.score_to) else None,
            'algorithms': {}}  # fmt: skip
-    print(f'{args.bag} ({ns or "/"}): {t[-1] - t[0]:.1f} s, {len(t)} odometry samples'
+    print(f'{args.bag} ({ns or "/"}): {len(t)} odometry samples over {t[-1] - t[0]:.1f} s, '
+          'from the first reference on'
           + (', recorded future references given as the plan' if args.plan_from_reference
              else ''))  # fmt: skip
     for algorithm in args.algorithms:
-        engine_config, _ = build_configs(_settings(args, algorithm))
+        engine_config, _ = build_configs(_settings(base, algorithm, args.rate))
         horizon = engine_config.prediction.horizon
         plans = None
         if args.plan_from_reference:
@@ -356,10 +461,11 @@ def run_bag(args) -> int:
         for line in _identification_summary(run):
             print(line)
         print(format_prediction(score, 'against the measured positions, issued and landing in '
-                                       'flight'))  # fmt: skip
+                                       'flight', run))  # fmt: skip
         until = f' to {args.score_to:g} s' if np.isfinite(args.score_to) else ''
-        print(format_prediction(score_all, f'against the measured positions, every prediction '
-                                           f'from t >= {args.score_from:g} s{until}'))  # fmt: skip
+        label = (f'against the measured positions, every prediction from t >= '
+                 f'{args.score_from:g} s{until}')  # fmt: skip
+        print(format_prediction(score_all, label, run))
         out['algorithms'][algorithm] = {'prediction_in_flight': _score_dict(score),
                                         'prediction_all': _score_dict(score_all),
                                         'coupling_final': run.coupling[-1].tolist()}  # fmt: skip

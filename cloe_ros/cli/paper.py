@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from cloe_ros.cli.errors import CliError
+from cloe_ros.cli.outputs import check_folder, make_folder
 from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.core.experiments import PAPER_TABLES, PaperCase, run_paper_case
 from cloe_ros.core.model import BLOCKS
@@ -39,7 +40,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         '--output',
         type=Path,
         default=Path('paper_results'),
-        help='folder for the figures and results.json (default: %(default)s)',
+        help='folder for the figures and results.json, new or empty (default: %(default)s)',
+    )
+    p.add_argument(
+        '--force',
+        action='store_true',
+        help='write into the folder even if it is not empty (replaces results.json and figures)',
     )
     p.add_argument(
         '--rate',
@@ -135,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
     param_duration = 50.0 if args.quick else args.parameter_duration
     if param_duration < 50.0:
         raise CliError(f'--parameter-duration must be >= 50 s, got {param_duration:g}')
+    check_folder(args.output, args.force, 'results.json and the figures')
+    make_folder(args.output)
     dt = 1.0 / rate
     bar = ProgressBar(enabled=not args.quiet)
     start = time.monotonic()
@@ -146,7 +154,6 @@ def run(args: argparse.Namespace) -> int:
     print(_header(rate))
     print(format_tables(position, trajectory))
 
-    args.output.mkdir(parents=True, exist_ok=True)
     results = {
         case.scenario: {
             f'{"disturbance" if dist else "no_disturbance"}/{alg}': value

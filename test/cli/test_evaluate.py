@@ -10,14 +10,19 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from cloe_ros.cli.main import main
+from cloe_ros.cli.evaluate import format_prediction
+from cloe_ros.cli.main import build_parser, main
+from cloe_ros.core.evaluation import PredictionScore
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / 'bags'
+#: A node parameter file that chooses the algorithm and the rate.
+CONFIG = 'cloe_inference:\n  ros__parameters:\n    algorithm: cloe_sm\n    rate: 50.0\n'
 
 
 def check_score(score: dict) -> None:
@@ -100,10 +105,20 @@ def test_evaluate_bag_scores_only_up_to_score_to(tmp_path, capsys):
     [
         (['evaluate', 'bag', str(ROOT / 'README.md')], 'is a file, not a bag'),
         (['evaluate', 'bag', str(SAMPLES / 'position'), '--vehicle', '/uav9'],
-         "no vehicle '/uav9'"),
+         "no vehicle '/uav9' in " + str(SAMPLES / 'position') + '; found: /'),
         (['evaluate', 'sim', '--duration', '-1'], 'duration'),
         (['evaluate', 'bag', str(SAMPLES / 'position'), '--score-to', '4'],
          '--score-to (4 s) must be after --score-from (5 s)'),
+        (['evaluate', 'sim', '--seed', '-1', '--duration', '10', '--score-from', '5', '-q'],
+         'ERROR: --seed must be a non-negative integer, got -1'),
+        (['evaluate', 'sim', '--segments', '-5', '--duration', '10', '--score-from', '5', '-q'],
+         'ERROR: --segments must be >= 0 s (0: no segments), got -5'),
+        (['evaluate', 'sim', '--duration', '10', '-q'],
+         'ERROR: --score-from 30 s (the default) lies beyond the 10 s run'),
+        (['evaluate', 'sim', '--duration', '10', '--score-from', '9.6', '-q'],
+         'ERROR: --score-from 9.6 s lies beyond the 10 s run'),
+        (['evaluate', 'bag', str(SAMPLES / 'position'), '--score-from', '1000', '-q'],
+         'ERROR: --score-from 1000 s lies beyond the recording'),
     ],
 )  # fmt: skip
 def test_evaluate_refuses_bad_input_with_one_error_line(args, expected, capsys):
@@ -113,3 +128,90 @@ def test_evaluate_refuses_bad_input_with_one_error_line(args, expected, capsys):
     assert 'Traceback' not in err
     assert err.strip().splitlines()[-1].startswith('ERROR: ')
     assert expected in err
+
+
+def test_evaluate_bag_takes_algorithm_and_rate_from_the_config(tmp_path, capsys):
+    """``--config``: its algorithm and rate apply (as in `cloe infer`); ``--vehicle /`` selects
+    the un-namespaced vehicle; ``--force`` replaces an existing --json file."""
+    config = tmp_path / 'inference.yaml'
+    config.write_text(CONFIG)
+    out = tmp_path / 'bag.json'
+    out.write_text('old')
+    status = main(['evaluate', 'bag', str(SAMPLES / 'position'), '--vehicle', '/', '--config',
+                   str(config), '--score-to', '20', '-q', '--json', str(out),
+                   '--force'])  # fmt: skip
+    assert status == 0, capsys.readouterr().err
+    result = json.loads(out.read_text())
+    assert (result['vehicle'], result['rate_hz'], list(result['algorithms'])) == (
+        '/', 50.0, ['cloe_sm'])  # fmt: skip
+    # what the duration it prints measures
+    header = f'{SAMPLES / "position"} (/): 5001 odometry samples over 50.0 s, from the first '
+    assert header + 'reference on' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ('args', 'algorithms', 'rate'),
+    [
+        (['sim'], ['cloe_sm', 'cloe_iv'], 100.0),
+        (['bag', 'B'], ['cloe_iv'], 100.0),
+        (['sim', '--config', 'C'], ['cloe_sm'], 50.0),
+        (['bag', 'B', '--config', 'C'], ['cloe_sm'], 50.0),
+        (['bag', 'B', '--config', 'C', '--algorithms', 'cloe_iv', '--rate', '20'], ['cloe_iv'],
+         20.0),
+    ],
+)  # fmt: skip
+def test_evaluate_command_line_beats_the_config_file_which_beats_the_defaults(
+    args, algorithms, rate, tmp_path
+):
+    from cloe_ros.cli.evaluate import resolve_settings
+
+    config = tmp_path / 'inference.yaml'
+    config.write_text(CONFIG)
+    args = [str(config) if a == 'C' else a for a in args]
+    parsed = build_parser().parse_args(['evaluate', *args])
+    resolve_settings(parsed)
+    assert (parsed.algorithms, parsed.rate) == (algorithms, rate)
+
+
+def test_evaluate_json_is_checked_before_the_run(tmp_path, capsys):
+    """An existing --json file is not overwritten without --force, a missing folder is named;
+    both before any simulation (which would take seconds)."""
+    existing = tmp_path / 'mine.json'
+    existing.write_text('mine')
+    missing = tmp_path / 'nowhere' / 'x.json'
+    for target, expected in (
+        (existing, f'ERROR: {existing} exists already, not overwriting: choose another file with '
+                   '--json or pass --force to replace it'),
+        (missing, f'ERROR: cannot write --json {missing}: the folder {missing.parent} does not '
+                  'exist'),
+        (tmp_path, f'ERROR: --json {tmp_path} is a folder: give the name of a file'),
+    ):  # fmt: skip
+        status = main(['evaluate', 'sim', '--duration', '10', '--score-from', '5',
+                       '--algorithms', 'cloe_iv', '-q', '--json', str(target)])  # fmt: skip
+        captured = capsys.readouterr()
+        assert status == 1
+        assert captured.err == expected + '\n'
+        assert captured.out == ''  # nothing was run
+    assert existing.read_text() == 'mine'
+
+
+def _empty_score(t_from: float, t_to: float) -> PredictionScore:
+    nan = np.full(4, np.nan)
+    return PredictionScore((0.5, 1.0, 2.0, 5.0), nan, nan, nan, None, np.zeros(4, int), 0,
+                           t_from, t_to)  # fmt: skip
+
+
+def test_an_empty_prediction_table_says_why():
+    """Only predictions withheld for an unstable model are blamed on it; an empty window or
+    predictions that cannot reach their horizon are said to be that."""
+    issued = SimpleNamespace(pred_t=np.arange(0.0, 20.0, 0.2), withheld=0)
+    text = format_prediction(_empty_score(30.0, 19.8), 'from t >= 30 s', issued)
+    assert 'none scored: no prediction was issued in the scored window' in text
+    assert 'the run issued 100 predictions, from 0.0 to 19.8 s' in text
+    assert 'unstable' not in text
+    text = format_prediction(_empty_score(19.5, 19.8), 'from t >= 19.5 s', issued)
+    assert 'none scored: 2 predictions were issued in the scored window, but none reached' in text
+    assert 'unstable' not in text
+    withheld = SimpleNamespace(pred_t=np.zeros(0), withheld=12)
+    text = format_prediction(_empty_score(5.0, 5.0), 'whole run', withheld)
+    assert 'every prediction of the run (12) was withheld: the identified model had an ' in text

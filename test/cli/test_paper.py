@@ -43,3 +43,27 @@ def test_paper_quick_prints_tables_and_writes_figures(tmp_path, capsys):
 def test_paper_refuses_a_bad_rate(capsys):
     assert main(['paper', '--rate', '5', '--no-plots']) == 1
     assert 'ERROR: --rate must be within [20, 10000] Hz, got 5' in capsys.readouterr().err
+
+
+def test_paper_refuses_an_output_in_the_way_before_any_work(tmp_path, capsys):
+    """A file, or a folder with files in it, is refused at once (the run takes a minute); a
+    non-empty folder is written into with --force only."""
+    afile = tmp_path / 'afile.txt'
+    afile.write_text('mine')
+    assert main(['paper', '--quick', '--no-plots', '-q', '-o', str(afile)]) == 1
+    captured = capsys.readouterr()
+    assert captured.err == (
+        f'ERROR: {afile} exists and is not a folder: choose another folder with -o\n'
+    )
+    assert captured.out == ''
+    folder = tmp_path / 'earlier'
+    folder.mkdir()
+    (folder / 'results.json').write_text('earlier results')
+    assert main(['paper', '--quick', '--no-plots', '-q', '-o', str(folder)]) == 1
+    captured = capsys.readouterr()
+    assert captured.err == (
+        f'ERROR: {folder} exists and is not empty, not overwriting: choose another folder with -o '
+        'or pass --force to replace results.json and the figures in it\n'
+    )
+    assert captured.out == ''
+    assert (folder / 'results.json').read_text() == 'earlier results'

@@ -1,0 +1,52 @@
+"""Where the commands write: checked before any work, and never overwritten without ``--force``.
+
+``cloe infer`` and ``cloe bag recover`` create a new bag and refuse an existing one; the commands
+writing a file or a folder of results (``cloe evaluate --json``, ``cloe paper -o``, ``cloe report
+-o``) refuse an existing file or a non-empty folder unless given ``--force``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from cloe_ros.cli.errors import CliError
+
+
+def check_new_file(path: Path, force: bool, option: str) -> None:
+    """Refuse, before any work, a file ``path`` (given with ``option``) that cannot be written,
+    or that exists and ``force`` is not given."""
+    if path.is_dir():
+        raise CliError(f'{option} {path} is a folder: give the name of a file')
+    if path.exists() and not force:
+        raise CliError(
+            f'{path} exists already, not overwriting: choose another file with {option} or pass '
+            '--force to replace it'
+        )
+    folder = path.parent
+    if not folder.is_dir():
+        raise CliError(f'cannot write {option} {path}: the folder {folder} does not exist')
+    if not os.access(path if path.exists() else folder, os.W_OK):
+        raise CliError(f'cannot write {option} {path}: permission denied')
+
+
+def check_folder(folder: Path, force: bool, replaced: str) -> None:
+    """Refuse, before any work, a ``folder`` that is a file, or that is not empty and ``force``
+    is not given (``replaced``: what ``--force`` replaces in it)."""
+    if folder.exists() and not folder.is_dir():
+        raise CliError(f'{folder} exists and is not a folder: choose another folder with -o')
+    if folder.is_dir() and any(folder.iterdir()) and not force:
+        raise CliError(
+            f'{folder} exists and is not empty, not overwriting: choose another folder with -o '
+            f'or pass --force to replace {replaced} in it'
+        )
+
+
+def make_folder(folder: Path) -> None:
+    """Create ``folder`` (and its parents); a clear error when that is not possible."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise CliError(f'cannot create the folder {folder}: {err.strerror or err}') from err
+    if not os.access(folder, os.W_OK):
+        raise CliError(f'cannot write into the folder {folder}: permission denied')

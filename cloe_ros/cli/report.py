@@ -3,10 +3,11 @@
 BAG is an input bag (``<ns>/odom`` + ``<ns>/reference``) or an output bag of ``cloe infer`` (which
 also holds ``<ns>/<output_ns>/state``, ``parameters`` and, when the engine predicts,
 ``prediction``). An input bag is inferred first, into ``FOLDER/inferred_bag``. For every vehicle
-and inference output the report gives the paper's metrics (DESIGN §5) against the simulator's
-ground truth when the bag has one, else against the measurements; the identified parameters
-(beside the true ones of a simulation); the prediction error at 0.5/1/2/5 s beside the
-constant-velocity and hold-position baselines when predictions exist; and figures.
+and inference output the report gives the paper's metrics (§6.1.3; docs/method.md, "Metrics")
+against the simulator's ground truth when the bag has one, else against the measurements; the
+identified parameters (beside the true ones of a simulation); the prediction error at 0.5/1/2/5 s
+beside the constant-velocity and hold-position baselines when predictions exist; and figures. A
+bag of outputs alone (``cloe infer --no-inputs``) is refused: nothing to score them against.
 
 FOLDER receives ``index.html`` (self-contained: CSS inline, figures embedded as base64 PNG),
 ``summary.md`` (the same tables, figures linked), ``report.json`` (the numbers) and the PNG files.
@@ -32,6 +33,7 @@ import numpy as np
 from cloe_ros.cli.analysis import Score, interpolate, score_output, state_errors
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.infer import InferResult, check_inputs, infer_bag
+from cloe_ros.cli.outputs import check_folder, make_folder
 from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.core.metrics import (
     position_rmse,
@@ -46,7 +48,7 @@ from cloe_ros.io.dataset import Predictions, Series, VehicleData, load_flight, v
 from cloe_ros.io.reader import BagReader
 
 NS = 1_000_000_000
-#: Prediction horizons of DESIGN §5, s.
+#: Prediction horizons, s (docs/report.md; those of ``cloe evaluate`` too).
 HORIZONS_S = (0.5, 1.0, 2.0, 5.0)
 #: A predicted pose counts for horizon h when its lead time is within this fraction of h.
 HORIZON_TOLERANCE = 0.2
@@ -642,13 +644,7 @@ def write_markdown(path: Path, title: str, meta: dict, general: list[Table], veh
 def _prepare_folder(folder: Path, bag: Path, force: bool) -> None:
     if folder.resolve() == bag.resolve():
         raise CliError(f'{folder} is the bag itself: choose another report folder with -o')
-    if folder.exists() and not folder.is_dir():
-        raise CliError(f'{folder} exists and is not a folder')
-    if folder.is_dir() and any(folder.iterdir()) and not force:
-        raise CliError(
-            f'{folder} exists and is not empty, not overwriting: choose another folder with -o '
-            'or pass --force to replace the report in it'
-        )
+    check_folder(folder, force, 'the report')
     inferred = folder / INFERRED_BAG
     if inferred.exists():  # only with --force: the bag of an earlier report
         if inferred.resolve() == bag.resolve():
@@ -658,7 +654,7 @@ def _prepare_folder(folder: Path, bag: Path, force: bool) -> None:
         shutil.rmtree(inferred)
     for name in REPORT_FILES:
         (folder / name).unlink(missing_ok=True)
-    folder.mkdir(parents=True, exist_ok=True)
+    make_folder(folder)
 
 
 def _settings(args: argparse.Namespace) -> dict:
@@ -684,6 +680,28 @@ def output_topics(topics: dict[str, str], namespaces: list[str]) -> list[str]:
     return sorted(found)
 
 
+def _refuse_outputs_alone(topics: dict[str, str], bag: Path) -> None:
+    """A bag of inference outputs without the inputs they came from (`cloe infer --no-inputs`):
+    without odometry there is nothing to score them against, so say exactly that."""
+    if any(n.endswith(('/odom', '/reference')) for n in topics):
+        return  # inputs, incomplete: check_inputs says what is missing
+    prefixes = [n[: -len('/state')] for n, t in topics.items()
+                if n.endswith('/state') and t == messages.ODOMETRY]  # fmt: skip
+    found = sorted(
+        f'{p}/{kind}'
+        for p in prefixes
+        if topics.get(f'{p}/parameters') == messages.FLOAT64_MULTI_ARRAY
+        for kind in ('state', 'parameters', 'prediction')
+        if f'{p}/{kind}' in topics
+    )
+    if found:
+        raise CliError(
+            f'{bag} holds only inference outputs ({", ".join(found)}), no <ns>/odom and '
+            '<ns>/reference to compare them with (written by `cloe infer --no-inputs`?): report '
+            'the input bag instead, or infer it again without --no-inputs'
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     start = time.monotonic()
     bag: Path = args.bag
@@ -696,6 +714,7 @@ def run(args: argparse.Namespace) -> int:
         message_count = reader.message_count
     namespaces = vehicle_namespaces(topics)
     if not namespaces:
+        _refuse_outputs_alone(topics, bag)
         check_inputs(topics, bag)  # raises, saying what the bag lacks
         raise CliError(f'{bag}: no vehicle with <ns>/odom and <ns>/reference found')
     if message_count == 0:

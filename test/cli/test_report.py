@@ -382,6 +382,21 @@ def test_bag_without_odom_or_reference(tmp_path, capsys):
     assert err.endswith('the bag has /chatter (nav_msgs/msg/Odometry)\n')
 
 
+def test_a_bag_of_outputs_alone_is_refused_as_such(tmp_path, capsys):
+    """`cloe infer --no-inputs` writes outputs without odom/reference: the report says that,
+    not that there is no vehicle to infer."""
+    outputs = {'/cloe/state': messages.ODOMETRY, '/cloe/parameters': messages.FLOAT64_MULTI_ARRAY}
+    bag = _bag_with(tmp_path / 'outputs', outputs)
+    status, _, err = run_report(capsys, bag, '-o', tmp_path / 'r')
+    assert status == 1
+    assert err == (
+        f'ERROR: {bag} holds only inference outputs (/cloe/parameters, /cloe/state), no '
+        '<ns>/odom and <ns>/reference to compare them with (written by `cloe infer '
+        '--no-inputs`?): report the input bag instead, or infer it again without --no-inputs\n'
+    )
+    assert not (tmp_path / 'r').exists()
+
+
 def test_existing_folder_is_refused_before_any_work(input_bag, tmp_path, capsys):
     folder = tmp_path / 'r'
     folder.mkdir()

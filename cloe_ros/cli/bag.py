@@ -8,9 +8,12 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
-from cloe_ros.io.recover import bag_info, recover_bag
+from cloe_ros.cli.errors import CliError
+from cloe_ros.io.reader import BagError, BagReader
+from cloe_ros.io.recover import BagInfo, RecoveryReport, TopicSummary, bag_info, recover_bag
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -26,7 +29,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help='topics, types, message counts and time span of a bag',
         description='Print the topics, types, message counts, duration, start and end of a bag.',
     )
-    info.add_argument('bag', type=Path, metavar='BAG', help='rosbag2 directory')
+    info.add_argument(
+        'bag', type=Path, metavar='BAG', help='rosbag2 directory (or one .mcap file)'
+    )
     info.set_defaults(run=run_info)
 
     rec = bag_sub.add_parser(
@@ -56,14 +61,56 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     rec.set_defaults(run=run_recover)
 
 
+def mcap_file_info(path: Path) -> BagInfo:
+    """What ``cloe bag info`` shows, for a single ``.mcap`` file (from its own summary)."""
+    try:
+        with BagReader(path) as reader:
+            topics = tuple(
+                TopicSummary(name, info.msgtype, info.count)
+                for name, info in reader.topics.items()
+            )
+            storage = 'mcap, a single file without metadata.yaml'
+            return BagInfo(path, (path.name,), storage, topics, reader.message_count,
+                           reader.start_ns, reader.end_ns)  # fmt: skip
+    except BagError as err:
+        raise CliError(str(err)) from err
+
+
 def run_info(args: argparse.Namespace) -> int:
-    for line in bag_info(args.bag).lines():
+    bag: Path = args.bag
+    if not bag.exists():
+        raise CliError(f'{bag} does not exist')
+    if bag.is_file() and bag.suffix == '.mcap':
+        info = mcap_file_info(bag)
+    elif bag.is_file():
+        raise CliError(
+            f'{bag} is a file, not a bag: expected a rosbag2 directory (or a single .mcap file)'
+        )
+    else:
+        info = bag_info(bag)
+    for line in info.lines():
         print(line)
     return 0
 
 
+def recovery_lines(report: RecoveryReport) -> list[str]:
+    """``report.lines()``, except for a file whose last chunk is cut off: the messages taken from
+    that chunk lie past ``end`` (where the last complete record ends), so ``end`` is not the
+    number of usable bytes there."""
+    lines = report.lines()
+    for i, f in enumerate(report.files):
+        if f.complete or not f.partial_chunk_messages:
+            continue
+        reason = re.sub(r' \(offset \d+ of \d+ bytes\)$', '', f.reason)
+        lines[i] = (
+            f'{f.path}: incomplete ({f.size} bytes), complete records up to byte {f.end}, then a '
+            f'chunk cut off by the end of the file: {reason}; {f.messages} messages read'
+        )
+    return lines
+
+
 def run_recover(args: argparse.Namespace) -> int:
     report = recover_bag(args.bag, args.output, compression=args.compression)
-    for line in report.lines():
+    for line in recovery_lines(report):
         print(line)
     return 0

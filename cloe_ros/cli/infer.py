@@ -52,7 +52,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar='NS',
         help='only these vehicle namespaces (default: every one found)',
     )
-    p.add_argument('--no-inputs', action='store_true', help='do not copy the input topics')
+    p.add_argument(
+        '--no-inputs',
+        action='store_true',
+        help='do not copy the input topics (`cloe report` then has nothing to score against)',
+    )
     p.add_argument(
         '--compression',
         choices=('zstd', 'none'),
@@ -263,7 +267,7 @@ def run(args: argparse.Namespace) -> int:
     per_second = result.wall_s / max(result.duration_s, 1e-9)
     print(
         f'wrote {args.output}: {sum(result.written.values())} messages; '
-        f'{result.duration_s:.1f} s of flight in {result.wall_s:.2f} s '
-        f'({1000 * per_second:.1f} ms per flight-second)'
+        f'{result.duration_s:.1f} s of recording (first to last message of the bag) in '
+        f'{result.wall_s:.2f} s ({1000 * per_second:.1f} ms per second of recording)'
     )
     return 0

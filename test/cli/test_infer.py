@@ -1,7 +1,7 @@
 """`cloe infer BAG -o OUT_BAG`: every input a user can get wrong ends in one ``ERROR: ...`` line
 and exit status 1 (never a traceback, never a half-written output bag); on good input the output
-bag holds the contract's topics (DESIGN §6), read back here with the MCAP project's own reader
-(``mcap`` + ``mcap_ros2``), not with the package's.
+bag holds the topics of the interface contract (README), read back here with the MCAP project's
+own reader (``mcap`` + ``mcap_ros2``), not with the package's.
 
 Inputs: simulated bags built in tmp directories (test/bag_fixtures.py), the sample recordings in
 ``bags/`` and, when available, two real flights (NanoBench).
@@ -335,6 +335,10 @@ def test_outputs_of_the_contract(inferred):
     for topic, n in copied.items():
         assert counts[topic] == n, topic
     assert f'wrote {out}: {sum(counts.values())} messages;' in stdout
+    # the time it reports is the recording's, first to last message, and says so
+    with BagReader(source) as reader:
+        recorded = f'{reader.duration_s:.1f} s of recording (first to last message of the bag)'
+    assert recorded in stdout
 
     # state: one message per estimator step, 10 ms of message time apart, every number finite
     states = decoded(out, '/cloe/state')

@@ -1,5 +1,6 @@
-"""``cloe demo``: the main job. Simulator, two inference nodes and the recorder as separate
-processes on a private DDS domain; then the comparison table from the recorded bag, and plots."""
+"""``cloe demo``: the main job. Simulator, three inference nodes (CLOE, CLOE-SM, cloe_iv) and the
+recorder as separate processes on a private DDS domain; then the comparison table from the
+recorded bag, and plots. The only ``cloe`` subcommand that needs DDS."""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""The ``cloe`` command: offline tools of the package (no DDS domain needed).
+"""The ``cloe`` command: the demo, and the package's offline tools.
+
+``cloe demo`` starts the nodes on a private, localhost-only DDS domain; every other subcommand
+works offline on files and needs no DDS domain.
 
 Each subcommand lives in its own module with ``add_parser(subparsers)`` and ``run(args) -> int``.
 Errors a user can act on derive from :class:`cloe_ros.errors.CloeError` and are printed as
@@ -21,7 +24,11 @@ SUBCOMMANDS = (demo, paper, infer, report, evaluate, bag)
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='cloe',
-        description='Trajectory inference of quadrotors with CLOE / CLOE-SM: offline tools.',
+        description=(
+            'Trajectory inference of quadrotors with CLOE, CLOE-SM and cloe_iv. `cloe demo` runs '
+            'the nodes on a private, localhost-only DDS domain; the other commands work offline '
+            'on files and need no DDS.'
+        ),
     )
     parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)

@@ -337,17 +337,31 @@ class VehicleEngine:
     def update_estimator(self, config: EstimatorConfig) -> None:
         """Use new gains from the next step on, keeping the state and the identified model.
 
-        A change of algorithm restarts the estimator (and forgets the model)."""
-        algorithm_changed = config.algorithm != self.config.estimator.algorithm
+        A change of algorithm, or of the ``cloe_iv`` identifier's settings (its filters and
+        statistics are built for them), restarts the estimator and forgets the model. ``l_initial``
+        applies from the next (re)start."""
+        old = self.config.estimator
+        if config == old:
+            return
         self.config = replace(self.config, estimator=config)
-        if algorithm_changed or config.algorithm == 'cloe_iv':
-            # (the IV identifier's filters and statistics depend on its settings: start over)
+        iv = config.algorithm == 'cloe_iv'
+        if config.algorithm != old.algorithm or (iv and config.identifier != old.identifier):
             self.reset()
-        elif self._est is not None:
-            est = self._factory(config, self._est.zeta_hat[0], self._last_r, self._h)
-            est.theta_hat[:] = self._est.theta_hat
-            est.gain_l[:] = self._est.gain_l
-            self._est = est
+            return
+        est = self._est
+        if est is None:
+            return  # (the next start uses the new config)
+        if iv:
+            # the observer reads its gains from the config at every step, but for the
+            # sliding-mode terms, which it holds per vehicle; the identifier is left as it is
+            est.config = config
+            est.lambda_[:] = config.sm_gains
+            est.exponents[:] = config.sm_exponents
+        else:
+            new = self._factory(config, est.zeta_hat[0], self._last_r, self._h)
+            new.theta_hat[:] = est.theta_hat
+            new.gain_l[:] = est.gain_l
+            self._est = new
 
     # ------------------------------------------------------------------------------ steps
 

@@ -7,11 +7,16 @@ The keys are the node's parameter names; the same YAML file configures both::
         algorithm: cloe_sm
         rate: 100.0
 
-(a flat mapping of the same keys works too). Unknown keys are refused, naming them.
+(a flat mapping of the same keys works too). Unknown keys are refused, naming them. The ranges
+(:data:`RANGES`) are the node's too: it declares its parameters with them, so a value the node
+refuses is refused here.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable, Mapping, Set
+from numbers import Real
 from pathlib import Path
 from typing import Any
 
@@ -26,11 +31,12 @@ from cloe_ros.core.estimator import (
     EstimatorConfig,
 )
 from cloe_ros.core.identifier import IdentifierConfig
+from cloe_ros.core.model import N_STATES
 from cloe_ros.core.prediction import PredictionConfig
 from cloe_ros.errors import CloeError
 from cloe_ros.io.outputs import OutputConfig, OutputConfigError
 
-__all__ = ['ALGORITHMS', 'DEFAULTS', 'SettingsError', 'build_configs', 'load_settings']
+__all__ = ['ALGORITHMS', 'DEFAULTS', 'RANGES', 'SettingsError', 'build_configs', 'load_settings']
 
 #: Parameters of the engine and outputs, with their defaults (node and CLI alike).
 DEFAULTS: dict[str, Any] = {
@@ -62,12 +68,44 @@ DEFAULTS: dict[str, Any] = {
     'estimate_coupling': True,
     'ground_altitude': 0.05,
 }
+#: Closed range of every numeric setting: the node's declared range and what ``cloe infer`` takes.
+RANGES: dict[str, tuple[float, float]] = {
+    'rate': (1.0, 2000.0),
+    'gamma_theta': (0.0, 1e6),
+    'gamma_l': (0.0, 1e6),
+    'l_initial': (0.0, 1e4),
+    'reference_timeout': (0.0, 60.0),
+    'max_gap': (0.001, 3600.0),
+    'parameters_rate': (0.01, 1000.0),
+    'prediction_horizon': (0.0, 120.0),
+    'prediction_step': (0.001, 10.0),
+    'prediction_rate': (0.01, 1000.0),
+    'prediction_disturbance_time': (0.0, 10.0),
+    'l_leak': (0.0, 1e3),
+    'gamma_d': (0.0, 1e6),
+    'l_min': (0.0, 1e6),
+    'l_max': (1e-6, 1e6),
+    'id_bandwidth': (0.1, 1000.0),
+    'id_highpass': (0.001, 100.0),
+    'id_window': (0.1, 1e6),
+    'id_excitation_window': (0.1, 1e6),
+    'id_excitation_threshold': (0.0, 1.0),
+    'ground_altitude': (-1e3, 1e3),
+}
 #: Node-only parameters a shared YAML file may also carry (ignored by ``cloe infer``).
 NODE_ONLY = ('vehicles', 'diagnostics_period', 'qos_reliability', 'qos_depth', 'use_sim_time')
 
 
 class SettingsError(CloeError, ValueError):
-    """Inference settings that cannot be used; the message says which and why."""
+    """Inference settings that cannot be used; the message says which and why.
+
+    ``name`` is the setting at fault (None for a whole file) and ``reason`` the message after the
+    name, so a node can report ``parameter '<name>': <reason>``.
+    """
+
+    def __init__(self, reason: str, name: str | None = None) -> None:
+        super().__init__(f'{name} {reason}' if name else reason)
+        self.name, self.reason = name, reason
 
 
 def build_configs(values: dict[str, Any]) -> tuple[EngineConfig, OutputConfig]:
@@ -78,67 +116,104 @@ def build_configs(values: dict[str, Any]) -> tuple[EngineConfig, OutputConfig]:
         raise SettingsError(msg)
     v = {**DEFAULTS, **values}
     if v['algorithm'] not in ALGORITHMS:
-        msg = f'algorithm {v["algorithm"]!r} is not one of {", ".join(ALGORITHMS)}'
-        raise SettingsError(msg)
+        reason = f'{v["algorithm"]!r} is not one of {", ".join(ALGORITHMS)}'
+        raise SettingsError(reason, 'algorithm')
     if not isinstance(v['estimate_coupling'], bool):
-        msg = f'estimate_coupling must be true or false, got {v["estimate_coupling"]!r}'
-        raise SettingsError(msg)
+        reason = f'must be true or false, got {v["estimate_coupling"]!r}'
+        raise SettingsError(reason, 'estimate_coupling')
+    n = {name: _number(v, name) for name in RANGES}
+    gains, exponents = _numbers(v, 'sm_gains'), _numbers(v, 'sm_exponents')
+    for k, g in enumerate(gains):
+        if not (math.isfinite(g) and g >= 0):
+            raise SettingsError(f'must be finite and >= 0, got {g!r} at index {k}', 'sm_gains')
+    for k, p in enumerate(exponents):
+        if not 0.0 <= p < 1.0:
+            raise SettingsError(f'must lie in [0, 1), got {p!r} at index {k}', 'sm_exponents')
+    _below(n, 'l_min', 'l_max', strict=False)
+    _below(n, 'id_highpass', 'id_bandwidth', strict=True)
+    if n['prediction_horizon']:
+        _below(n, 'prediction_step', 'prediction_horizon', strict=False)
+    try:
+        OutputConfig(str(v['output_ns']))
+    except OutputConfigError as err:
+        raise SettingsError(f'{v["output_ns"]!r} is not a valid namespace', 'output_ns') from err
     try:
         identifier = IdentifierConfig(
-            bandwidth=_number(v, 'id_bandwidth'),
-            highpass=_number(v, 'id_highpass'),
-            window=_number(v, 'id_window'),
-            excitation_window=_number(v, 'id_excitation_window'),
-            excitation_threshold=_number(v, 'id_excitation_threshold'),
+            bandwidth=n['id_bandwidth'],
+            highpass=n['id_highpass'],
+            window=n['id_window'],
+            excitation_window=n['id_excitation_window'],
+            excitation_threshold=n['id_excitation_threshold'],
             estimate_coupling=v['estimate_coupling'],
         )
         estimator = EstimatorConfig(
             algorithm=v['algorithm'],
-            gamma_theta=_number(v, 'gamma_theta'),
-            gamma_l=_number(v, 'gamma_l'),
-            l_initial=_number(v, 'l_initial'),
-            sm_gains=tuple(_numbers(v, 'sm_gains')),
-            sm_exponents=tuple(_numbers(v, 'sm_exponents')),
-            l_leak=_number(v, 'l_leak'),
-            gamma_d=_number(v, 'gamma_d'),
-            l_min=_number(v, 'l_min'),
-            l_max=_number(v, 'l_max'),
+            gamma_theta=n['gamma_theta'],
+            gamma_l=n['gamma_l'],
+            l_initial=n['l_initial'],
+            sm_gains=tuple(gains),
+            sm_exponents=tuple(exponents),
+            l_leak=n['l_leak'],
+            gamma_d=n['gamma_d'],
+            l_min=n['l_min'],
+            l_max=n['l_max'],
             identifier=identifier,
-            ground_altitude=_number(v, 'ground_altitude'),
+            ground_altitude=n['ground_altitude'],
         )
         engine = EngineConfig(
-            rate=_number(v, 'rate'),
+            rate=n['rate'],
             estimator=estimator,
-            reference_timeout=_number(v, 'reference_timeout'),
-            max_gap=_number(v, 'max_gap'),
+            reference_timeout=n['reference_timeout'],
+            max_gap=n['max_gap'],
             world_frame=str(v['world_frame']),
             prediction=PredictionConfig(
-                horizon=_number(v, 'prediction_horizon'),
-                step=_number(v, 'prediction_step'),
-                rate=_number(v, 'prediction_rate'),
-                disturbance_time=_number(v, 'prediction_disturbance_time'),
+                horizon=n['prediction_horizon'],
+                step=n['prediction_step'],
+                rate=n['prediction_rate'],
+                disturbance_time=n['prediction_disturbance_time'],
             ),
         )
-        output = OutputConfig(str(v['output_ns']), _number(v, 'parameters_rate'))
-    except (ConfigError, OutputConfigError) as err:
+        output = OutputConfig(str(v['output_ns']), n['parameters_rate'])
+    except (ConfigError, OutputConfigError) as err:  # (the checks above leave none of these)
         raise SettingsError(str(err)) from err
     return engine, output
 
 
+def _is_number(value: Any) -> bool:
+    return isinstance(value, Real) and not isinstance(value, bool)
+
+
 def _number(values: dict, name: str) -> float:
+    """``values[name]`` as a float within ``RANGES[name]``."""
     value = values[name]
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        msg = f'{name} must be a number, got {value!r}'
-        raise SettingsError(msg)
-    return float(value)
+    if not _is_number(value):
+        raise SettingsError(f'must be a number, got {value!r}', name)
+    value = float(value)
+    low, high = RANGES[name]
+    if not (math.isfinite(value) and low <= value <= high):
+        raise SettingsError(f'must be within [{low:g}, {high:g}], got {value!r}', name)
+    return value
 
 
 def _numbers(values: dict, name: str) -> list[float]:
+    """``values[name]``, one number per state, as floats. Any sequence of numbers will do: rclpy
+    hands double arrays over as ``array.array``, YAML gives lists."""
     value = values[name]
-    if not isinstance(value, (list, tuple)):
-        msg = f'{name} must be a list of numbers, got {value!r}'
-        raise SettingsError(msg)
-    return [_number({name: x}, name) for x in value]
+    items = None
+    if isinstance(value, Iterable) and not isinstance(value, (str, bytes, Mapping, Set)):
+        items = list(value)
+    if items is None or not all(_is_number(x) for x in items):
+        raise SettingsError(f'must be a list of numbers, got {value!r}', name)
+    out = [float(x) for x in items]
+    if len(out) != N_STATES:
+        raise SettingsError(f'needs {N_STATES} numbers, one per state, got {len(out)}', name)
+    return out
+
+
+def _below(n: dict[str, float], name: str, bound: str, strict: bool) -> None:
+    if n[name] > n[bound] or (strict and n[name] == n[bound]):
+        relation = 'below' if strict else 'at most'
+        raise SettingsError(f'must be {relation} {bound} ({n[bound]:g}), got {n[name]!r}', name)
 
 
 def load_settings(path: str | Path, node_name: str = 'cloe_inference') -> dict[str, Any]:

@@ -64,7 +64,14 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
 
 
 class ParameterError(ValueError):
-    """A parameter value the node cannot start with (reported, exit status 1)."""
+    """A parameter value the node cannot start with (reported, exit status 1).
+
+    The message is ``parameter '<name>': <reason>`` (the documented form), or the reason alone
+    for a problem no single parameter has."""
+
+    def __init__(self, reason: str, name: str | None = None) -> None:
+        super().__init__(f'parameter {name!r}: {reason}' if name else reason)
+        self.name, self.reason = name, reason
 
 
 def describe(
@@ -97,20 +104,24 @@ def describe(
 def declare(node: Node, name: str, default, descriptor: ParameterDescriptor):
     """Declare a parameter and return its value.
 
-    Friendlier than plain rclpy in two ways users hit on the command line: an integer given for a
-    floating-point parameter (``-p rate:=100``) is taken as a float, and an array parameter with
-    an empty default (``descriptor.type`` gives its element type) accepts ``[]`` and is always
-    initialised (see :func:`_declare_array`). Any other invalid override (type or range) raises
-    :class:`ParameterError` with rclpy's reason.
+    Friendlier than plain rclpy in two ways users hit on the command line: integers given for a
+    floating-point parameter (``-p rate:=100``, ``-p gains:=[1, 2]``) are taken as floats, at
+    start-up and in later ``set_parameters`` calls (see :func:`_integers_as_doubles`); and an
+    array parameter with an empty default (``descriptor.type`` gives its element type) accepts
+    ``[]`` and is always initialised (see :func:`_declare_array`). Any other invalid override
+    (type or range) raises :class:`ParameterError` with rclpy's reason.
     """
+    if not getattr(node, '_cloe_integers_as_doubles', False):
+        node.add_pre_set_parameters_callback(lambda params: _integers_as_doubles(node, params))
+        node._cloe_integers_as_doubles = True
     overrides = getattr(node, '_parameter_overrides', None)
     if not isinstance(overrides, dict):
         overrides = {}
     override = overrides.get(name)
-    if override is not None and isinstance(default, float):
-        value = override.value
-        if isinstance(value, int) and not isinstance(value, bool):
-            overrides[name] = Parameter(name, Parameter.Type.DOUBLE, float(value))
+    if override is not None and (
+        isinstance(default, float) or (isinstance(default, list) and default)
+    ):
+        overrides[name] = _as_double(override, Parameter.Type.from_parameter_value(default).value)
     try:
         if isinstance(default, list) and not default:
             return _declare_array(node, name, descriptor)
@@ -119,7 +130,34 @@ def declare(node: Node, name: str, default, descriptor: ParameterDescriptor):
         rclpy.exceptions.InvalidParameterTypeException,
         rclpy.exceptions.InvalidParameterValueException,
     ) as err:
-        raise ParameterError(f'parameter {name!r}: {err}') from err
+        raise ParameterError(str(err), name) from err
+
+
+def _as_double(param: Parameter, wanted: int) -> Parameter:
+    """``param`` with integers made floats when ``wanted`` (a ``ParameterType``) is a double or
+    double array."""
+    if wanted == ParameterType.PARAMETER_DOUBLE and param.type_ == Parameter.Type.INTEGER:
+        return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+    if (
+        wanted == ParameterType.PARAMETER_DOUBLE_ARRAY
+        and param.type_ == Parameter.Type.INTEGER_ARRAY
+    ):
+        return Parameter(param.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in param.value])
+    return param
+
+
+def _integers_as_doubles(node: Node, params: list[Parameter]) -> list[Parameter]:
+    """A pre-set-parameters callback: integers for a double (array) parameter become floats, as
+    at start-up (rclpy would refuse them: "Wrong parameter type, expected DOUBLE got INTEGER").
+    The parameter's type, as ``describe_parameters`` reports it, stays what it is."""
+    out = []
+    for p in params:
+        if node.has_parameter(p.name):
+            descriptor = node.describe_parameter(p.name)
+            if not descriptor.dynamic_typing:
+                p = _as_double(p, descriptor.type)
+        out.append(p)
+    return out
 
 
 def _declare_array(node: Node, name: str, descriptor: ParameterDescriptor) -> list:
@@ -140,9 +178,7 @@ def _declare_array(node: Node, name: str, descriptor: ParameterDescriptor) -> li
     if value is None or _is_empty_sequence(value):
         return []
     if isinstance(value, str) or not all(isinstance(v, element) for v in value):
-        raise ParameterError(
-            f'parameter {name!r}: expected a list of {element.__name__}, got {value!r}'
-        )
+        raise ParameterError(f'expected a list of {element.__name__}, got {value!r}', name)
     return list(value)
 
 
@@ -190,11 +226,14 @@ def check_vehicles(vehicles: Iterable[str]) -> list[str]:
         if not v or any(not (c.isalnum() or c in '_/') for c in v) or '//' in v:
             raise ParameterError(
                 f'vehicle namespace {v!r} is not valid: use names like /uav1 (letters, digits, '
-                '_ and /)'
+                '_ and /)',
+                'vehicles',
             )
         if v[0].isdigit() or (v.startswith('/') and len(v) > 1 and v[1].isdigit()):
-            raise ParameterError(f'vehicle namespace {v!r} must not start with a digit')
+            raise ParameterError(
+                f'vehicle namespace {v!r} must not start with a digit', 'vehicles'
+            )
         out.append(v.rstrip('/'))
     if len(set(out)) != len(out):
-        raise ParameterError(f'vehicle namespaces must be unique, got {out}')
+        raise ParameterError(f'vehicle namespaces must be unique, got {out}', 'vehicles')
     return out

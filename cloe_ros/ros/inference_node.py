@@ -22,6 +22,7 @@ from dataclasses import replace
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
+from rcl_interfaces.msg import FloatingPointRange
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
@@ -30,7 +31,7 @@ from std_srvs.srv import Trigger
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.io import messages
-from cloe_ros.io.config import ALGORITHMS, DEFAULTS, SettingsError, build_configs
+from cloe_ros.io.config import ALGORITHMS, DEFAULTS, RANGES, SettingsError, build_configs
 from cloe_ros.io.messages import MessageError, Status, encode_diagnostics
 from cloe_ros.io.outputs import OutputConfig, OutputEncoder
 from cloe_ros.ros.common import (
@@ -125,14 +126,12 @@ class InferenceNode(Node):
                 'them; cloe_iv identifies with instrumental variables); changing it restarts',
                 additional_constraints='one of ' + ', '.join(ALGORITHMS))),
             ('rate', DEFAULTS['rate'], describe(
-                'estimator steps per second of message time, Hz (changing it restarts)',
-                float_range=(1.0, 2000.0))),
+                'estimator steps per second of message time, Hz (changing it restarts)')),
             ('gamma_theta', DEFAULTS['gamma_theta'], describe(
-                'identifier gain Gamma (paper: 400)', float_range=(0.0, 1e6))),
+                'identifier gain Gamma (paper: 400)')),
             ('gamma_l', DEFAULTS['gamma_l'], describe(
-                'adaptive observer-gain rate gamma (paper: 400)', float_range=(0.0, 1e6))),
-            ('l_initial', DEFAULTS['l_initial'], describe('initial observer gain L(0), 1/s',
-                                        float_range=(0.0, 1e4))),
+                'adaptive observer-gain rate gamma (paper: 400)')),
+            ('l_initial', DEFAULTS['l_initial'], describe('initial observer gain L(0), 1/s')),
             ('sm_gains', DEFAULTS['sm_gains'], describe(
                 'sliding-mode gains alpha, one per state (paper Table 1)',
                 additional_constraints='12 values >= 0')),
@@ -140,56 +139,50 @@ class InferenceNode(Node):
                 'sliding-mode exponents p, one per state',
                 additional_constraints='12 values in [0, 1)')),
             ('reference_timeout', DEFAULTS['reference_timeout'], describe(
-                'odometry lead (s) after which a missing newer reference is held',
-                float_range=(0.0, 60.0))),
+                'odometry lead (s) after which a missing newer reference is held')),
             ('max_gap', DEFAULTS['max_gap'], describe(
-                'odometry gap (s) treated as a time jump: the estimator re-initialises',
-                float_range=(0.001, 3600.0))),
+                'odometry gap (s) treated as a time jump: the estimator re-initialises')),
             ('world_frame', DEFAULTS['world_frame'], describe(
-                'required header.frame_id of odom and reference; empty: the first one seen')),
+                'required header.frame_id of odom and reference; empty: the first one seen',
+                **ro)),
             ('output_ns', DEFAULTS['output_ns'], describe(
                 'namespace of the outputs under each vehicle namespace', **ro)),
             ('parameters_rate', DEFAULTS['parameters_rate'], describe(
-                'parameters messages per second of message time, Hz',
-                float_range=(0.01, 1000.0))),
+                'parameters messages per second of message time, Hz')),
             ('prediction_horizon', DEFAULTS['prediction_horizon'], describe(
-                'anticipated path length, s (0: no predictions)', float_range=(0.0, 120.0),
+                'anticipated path length, s (0: no predictions)',
                 **ro)),
             ('prediction_step', DEFAULTS['prediction_step'], describe(
-                'spacing of the predicted poses, s', float_range=(0.001, 10.0), **ro)),
+                'spacing of the predicted poses, s', **ro)),
             ('prediction_rate', DEFAULTS['prediction_rate'], describe(
-                'predictions per second of message time, Hz', float_range=(0.01, 1000.0),
+                'predictions per second of message time, Hz',
                 **ro)),
             ('prediction_disturbance_time', DEFAULTS['prediction_disturbance_time'], describe(
                 'window of the recent model-error fit and its fading time over the horizon, s '
-                '(0: steady-state offsets only)', float_range=(0.0, 10.0), **ro)),
+                '(0: steady-state offsets only)', **ro)),
             ('l_leak', DEFAULTS['l_leak'], describe(
-                'cloe_iv: leakage of the observer gain L, 1/s', float_range=(0.0, 1e3))),
+                'cloe_iv: leakage of the observer gain L, 1/s')),
             ('gamma_d', DEFAULTS['gamma_d'], describe(
-                "cloe_iv: rate of the observer's model-error state on the unknown rows, 1/s^2",
-                float_range=(0.0, 1e6))),
+                "cloe_iv: rate of the observer's model-error state on the unknown rows, 1/s^2")),
             ('l_min', DEFAULTS['l_min'], describe(
-                'cloe_iv: lower bound of L, 1/s', float_range=(0.0, 1e6))),
+                'cloe_iv: lower bound of L, 1/s')),
             ('l_max', DEFAULTS['l_max'], describe(
-                'cloe_iv: upper bound of L, 1/s', float_range=(1e-6, 1e6))),
+                'cloe_iv: upper bound of L, 1/s')),
             ('id_bandwidth', DEFAULTS['id_bandwidth'], describe(
-                "cloe_iv: identifier's filter bandwidth, rad/s", float_range=(0.1, 1000.0))),
+                "cloe_iv: identifier's filter bandwidth, rad/s")),
             ('id_highpass', DEFAULTS['id_highpass'], describe(
-                "cloe_iv: identifier's high-pass corner, rad/s", float_range=(0.001, 100.0))),
+                "cloe_iv: identifier's high-pass corner, rad/s")),
             ('id_window', DEFAULTS['id_window'], describe(
-                'cloe_iv: forgetting time constant of the estimate, s',
-                float_range=(0.1, 1e6))),
+                'cloe_iv: forgetting time constant of the estimate, s')),
             ('id_excitation_window', DEFAULTS['id_excitation_window'], describe(
-                'cloe_iv: time constant of the excitation measure, s',
-                float_range=(0.1, 1e6))),
+                'cloe_iv: time constant of the excitation measure, s')),
             ('id_excitation_threshold', DEFAULTS['id_excitation_threshold'], describe(
-                'cloe_iv: smallest canonical correlation counted as excited',
-                float_range=(0.0, 1.0))),
+                'cloe_iv: smallest canonical correlation counted as excited')),
             ('estimate_coupling', DEFAULTS['estimate_coupling'], describe(
                 'cloe_iv: identify the tilt couplings (the paper fixes them at +-g)')),
             ('ground_altitude', DEFAULTS['ground_altitude'], describe(
                 'cloe_iv: identification pauses while the commanded altitude is at or below '
-                'this, m (negative: never)', float_range=(-1e3, 1e3))),
+                'this, m (negative: never)')),
             ('diagnostics_period', 1.0, describe(
                 '/diagnostics period, s', float_range=(0.05, 60.0), **ro)),
             ('qos_reliability', 'reliable', describe(
@@ -199,9 +192,14 @@ class InferenceNode(Node):
                 'QoS history depth of the subscriptions (10 s of 100 Hz odometry: a node starved '
                 'of CPU for a moment loses nothing)', int_range=(1, 100000), **ro)),
         ]  # fmt: skip
+        for name, _, d in p:  # one range per setting, the one `cloe infer` checks too
+            if name in RANGES:
+                low, high = RANGES[name]
+                d.floating_point_range = [FloatingPointRange(from_value=low, to_value=high)]
         values = {name: declare(self, name, default, d) for name, default, d in p}
         if values['qos_reliability'] not in ('reliable', 'best_effort'):
-            raise ParameterError("parameter 'qos_reliability' must be reliable or best_effort")
+            reason = f'must be reliable or best_effort, got {values["qos_reliability"]!r}'
+            raise ParameterError(reason, 'qos_reliability')
         return values
 
     def _values(self, overrides: dict | None = None) -> dict:
@@ -211,17 +209,17 @@ class InferenceNode(Node):
 
     @staticmethod
     def _configs(values: dict) -> tuple[EngineConfig, OutputConfig]:
-        """Build the configs; ``ParameterError`` with the reason if a value cannot be used."""
+        """Build the configs; ``ParameterError`` naming the parameter if a value cannot be used."""
         try:
             return build_configs(values)
         except SettingsError as err:
-            raise ParameterError(str(err)) from err
+            raise ParameterError(err.reason, err.name) from err
 
     def _on_set_parameters(self, params):
         changes = {p.name: p.value for p in params}
         try:
-            engine_config, output_config = self._configs(self._values(changes))
-        except ParameterError as err:
+            engine_config, output_config = build_configs(self._values(changes))
+        except SettingsError as err:
             return refuse(str(err))
         restart = any(
             n in changes and changes[n] != self.get_parameter(n).value for n in RESTARTING
@@ -231,9 +229,9 @@ class InferenceNode(Node):
             if restart:
                 self._make_vehicle(v, keep_stats=True)
             else:
-                engine.config = replace(engine.config, reference_timeout=
-                                        engine_config.reference_timeout,
-                                        max_gap=engine_config.max_gap)  # fmt: skip
+                # timing tolerances at once; the estimator keeps its state and model unless an
+                # identifier setting of cloe_iv changed (VehicleEngine.update_estimator)
+                engine.config = replace(engine_config, estimator=engine.config.estimator)
                 engine.update_estimator(engine_config.estimator)
             if 'parameters_rate' in changes:
                 self.encoders[v] = OutputEncoder(output_config, v, self.encoders[v].predictions)

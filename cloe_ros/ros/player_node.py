@@ -282,10 +282,11 @@ class PlayerNode(Node):
             unknown = [t for t in self.topic_names if t not in bag.topics]
             if unknown:
                 bag.close()
-                raise common.ParameterError(
-                    f'parameter topics: {", ".join(unknown)} not in {bag.path} (it has '
+                reason = (
+                    f'{", ".join(unknown)} not in {bag.path} (it has '
                     f'{", ".join(bag.topics) or "no topics"})'
                 )
+                raise common.ParameterError(reason, 'topics')
 
     def _create_publishers(self) -> None:
         bag = self._bag

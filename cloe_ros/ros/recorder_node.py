@@ -121,13 +121,13 @@ class TopicStats:
     bytes: int = 0
 
 
-def check_period(name: str, value, bounds: tuple[float, float]) -> str | None:
-    """Why ``value`` is not a valid period (s) for ``name``, or None."""
+def check_period(value, bounds: tuple[float, float]) -> str | None:
+    """Why ``value`` is not a valid period (s), said after the parameter's name, or None."""
     if not isinstance(value, float) or isinstance(value, bool):
-        return f'{name} must be a double (seconds), got {value!r}'
+        return f'must be a double (seconds), got {value!r}'
     low, high = bounds
     if not math.isfinite(value) or not low <= value <= high:
-        return f'{name} must be in [{low}, {high}] s, got {value}'
+        return f'must be in [{low}, {high}] s, got {value}'
     return None
 
 
@@ -147,7 +147,7 @@ class BagRecorder(Node):
         try:
             self._writer = BagWriter(Path(self.output), self.compression)
         except WriterError as err:
-            raise common.ParameterError(f"parameter 'output': {err}") from err
+            raise common.ParameterError(str(err), 'output') from err
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._discovery_timer = self._wall_timer(self.discovery_period, self._discover)
@@ -227,24 +227,21 @@ class BagRecorder(Node):
             ),
         )
         if not self.output.strip():
-            raise common.ParameterError("parameter 'output' must name a bag directory")
+            raise common.ParameterError('must name a bag directory', 'output')
         if self.compression not in COMPRESSIONS:
-            raise common.ParameterError(
-                f"parameter 'compression' must be one of {', '.join(COMPRESSIONS)}, "
-                f'got {self.compression!r}'
-            )
+            reason = f'{self.compression!r} is not one of {", ".join(COMPRESSIONS)}'
+            raise common.ParameterError(reason, 'compression')
         for name, bounds in (('discovery_period', DISCOVERY_RANGE), ('flush_period', FLUSH_RANGE)):
-            reason = check_period(name, getattr(self, name), bounds)
+            reason = check_period(getattr(self, name), bounds)
             if reason:
-                raise common.ParameterError(f'parameter {reason}')
+                raise common.ParameterError(reason, name)
         self.topics: list[str] = []
         for t in topics or []:
             try:
                 self.topics.append(self.resolve_topic_name(t))
             except Exception as err:  # rclpy raises several types for invalid names
-                raise common.ParameterError(
-                    f"parameter 'topics': {t!r} is not a valid topic name: {err}"
-                ) from err
+                reason = f'{t!r} is not a valid topic name: {err}'
+                raise common.ParameterError(reason, 'topics') from err
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         for p in params:
@@ -253,13 +250,13 @@ class BagRecorder(Node):
                     f'{p.name} is read-only while recording: restart {NODE_NAME} to change it'
                 )
             if p.name == 'discovery_period':
-                reason = check_period(p.name, p.value, DISCOVERY_RANGE)
+                reason = check_period(p.value, DISCOVERY_RANGE)
             elif p.name == 'flush_period':
-                reason = check_period(p.name, p.value, FLUSH_RANGE)
+                reason = check_period(p.value, FLUSH_RANGE)
             else:
                 reason = None
             if reason:
-                return common.refuse(reason)
+                return common.refuse(f'{p.name} {reason}')
         return common.accept()
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:

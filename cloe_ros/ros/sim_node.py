@@ -198,13 +198,11 @@ class SimulatorNode(Node):
         ]  # fmt: skip
         values = {name: declare(self, name, default, d) for name, default, d in p}
         if values['scenario'] not in SCENARIOS:
-            raise ParameterError(
-                f"parameter 'scenario': {values['scenario']!r} is not one of "
-                + ', '.join(SCENARIOS)
-            )
+            reason = f'{values["scenario"]!r} is not one of {", ".join(SCENARIOS)}'
+            raise ParameterError(reason, 'scenario')
         inertia = values['inertia']
         if len(inertia) != 3 or min(inertia) <= 0:
-            raise ParameterError(f"parameter 'inertia' needs 3 values > 0, got {list(inertia)}")
+            raise ParameterError(f'needs 3 values > 0, got {list(inertia)}', 'inertia')
         return values
 
     def _on_set_parameters(self, params):
@@ -223,9 +221,7 @@ class SimulatorNode(Node):
     def _divisor(sim_rate: float, rate: float, name: str) -> int:
         every = sim_rate / rate
         if abs(every - round(every)) > 1e-9 or round(every) < 1:
-            raise ParameterError(
-                f'parameter {name!r}: {rate:g} Hz does not divide sim_rate {sim_rate:g} Hz'
-            )
+            raise ParameterError(f'{rate:g} Hz does not divide sim_rate {sim_rate:g} Hz', name)
         return round(every)
 
     # --------------------------------------------------------------------------- running

@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
-from cloe_ros.core.estimator import CloeEstimator, ConfigError, EstimatorConfig
+from cloe_ros.core.estimator import (
+    SM_GAINS_TABLE1,
+    CloeEstimator,
+    ConfigError,
+    EstimatorConfig,
+)
 from cloe_ros.core.kinematics import state_to_odometry, wrap_angle, yaw_quaternion
 from cloe_ros.core.samples import OdometrySample, PoseSample
 from cloe_ros.core.simulator import QuadrotorSimulator, get_scenario
@@ -245,3 +252,49 @@ def test_reset_forgets_the_model_and_reinitialises(flight):
 def test_invalid_engine_config_is_refused(kwargs, message):
     with pytest.raises(ConfigError, match=message):
         EngineConfig(**kwargs)
+
+
+def _iv_engine(seq, **estimator):
+    engine = VehicleEngine(EngineConfig(estimator=EstimatorConfig('cloe_iv', **estimator)))
+    return engine, run(engine, seq)
+
+
+def test_new_observer_gains_keep_the_identifiers_state(flight):
+    """cloe_iv: a change that does not concern the identifier (gains of the observer, a setting
+    it does not use) applies at once and keeps the state and the identified model."""
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)
+    engine, out = _iv_engine(seq[:1200])
+    twin, _ = _iv_engine(seq[:1200])
+    est = engine._est
+    assert np.any(out[-1].theta_hat != 0) and est.identifier.status.any()
+    # gamma_theta: used by the paper's algorithms only, the twin runs on as if unchanged
+    engine.update_estimator(replace(engine.config.estimator, gamma_theta=10.0))
+    assert engine.stats.resets == 0 and engine._est is est
+    after, twin_after = run(engine, seq[1200:1800]), run(twin, seq[1200:1800])
+    np.testing.assert_array_equal(after[-1].theta_hat, twin_after[-1].theta_hat)
+    np.testing.assert_array_equal(after[-1].zeta_hat, twin_after[-1].zeta_hat)
+    # the observer's own gains apply from the next step on, to the same identifier
+    gains = tuple(2.0 * g for g in SM_GAINS_TABLE1)
+    engine.update_estimator(replace(engine.config.estimator, sm_gains=gains, l_max=30.0))
+    assert engine.stats.resets == 0 and engine._est is est
+    np.testing.assert_array_equal(est.lambda_[0], gains)
+    assert est.config.l_max == 30.0
+    after = run(engine, seq[1800:2000])
+    assert engine._est is est and est.gain_l.max() <= 30.0
+    # the identifier's own settings restart it (documented), forgetting the model
+    identifier = replace(engine.config.estimator.identifier, window=30.0)
+    engine.update_estimator(replace(engine.config.estimator, identifier=identifier))
+    assert engine.stats.resets == 1 and engine._est is None
+    restarted = run(engine, seq[2000:2100])
+    assert restarted[0].stamp_ns == after[-1].stamp_ns + NS // 100
+    assert engine._est.identifier.config.window == 30.0
+
+
+def test_an_unchanged_estimator_config_changes_nothing(flight):
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)
+    engine, _ = _iv_engine(seq[:600])
+    est = engine._est
+    engine.update_estimator(replace(engine.config.estimator))
+    assert engine.stats.resets == 0 and engine._est is est

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import array
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,21 +13,26 @@ from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 from ros_helpers import spin_until
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
+from cloe_ros.core.engine import VehicleEngine
 from cloe_ros.core.kinematics import state_to_odometry
 from cloe_ros.core.model import PARAMETER_NAMES
 from cloe_ros.core.samples import OdometrySample
-from cloe_ros.core.simulator import true_parameters
+from cloe_ros.core.simulator import QuadrotorSimulator, get_scenario, true_parameters
 from cloe_ros.io import messages
+from cloe_ros.io.config import RANGES
 from cloe_ros.io.outputs import PARAMETER_LABELS
 from cloe_ros.ros.common import ParameterError
 from cloe_ros.ros.inference_node import InferenceNode
 from cloe_ros.ros.sim_node import SimulatorNode
 
 pytestmark = pytest.mark.ros
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
@@ -220,18 +227,53 @@ def test_reset_service_forgets_the_model(context):
     [
         ('rate', 0.5, 'Parameter rate out of range'),
         ('rate', 'fast', "expecting type 'DOUBLE'"),
-        ('algorithm', 'kalman', "'kalman' is not one of cloe, cloe_sm"),
+        ('algorithm', 'kalman', "'kalman' is not one of cloe, cloe_sm, cloe_iv"),
         ('gamma_theta', -1.0, 'Parameter gamma_theta out of range'),
-        ('sm_exponents', [1.5] * 12, r'sm_exponents must lie in [0, 1)'),
-        ('sm_gains', [0.1] * 3, 'need 12 entries'),
+        ('sm_exponents', [1.5] * 12, 'must lie in [0, 1), got 1.5 at index 0'),
+        ('sm_gains', [0.1] * 3, 'needs 12 numbers, one per state, got 3'),
+        ('l_min', 60.0, 'must be at most l_max (50), got 60.0'),
         ('vehicles', ['/a b'], "vehicle namespace '/a b' is not valid"),
-        ('qos_reliability', 'sometimes', 'must be reliable or best_effort'),
+        ('qos_reliability', 'sometimes', "must be reliable or best_effort, got 'sometimes'"),
     ],
 )
 def test_invalid_startup_parameters_are_refused_with_a_reason(context, name, value, reason):
+    """The documented form: ``parameter '<name>': <reason>`` (printed after ``ERROR: ``)."""
     with pytest.raises(ParameterError) as info:
         InferenceNode(context=context, parameter_overrides=[Parameter(name, value=value)])
+    assert str(info.value).startswith(f"parameter '{name}': ")
     assert reason in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ('node', 'overrides', 'expected'),
+    [
+        ('bag_recorder', {'compression': 'lz4'},
+         "parameter 'compression': 'lz4' is not one of zstd, none"),
+        ('bag_recorder', {'output': ' '}, "parameter 'output': must name a bag directory"),
+        ('bag_player', {'topics': ['/odm']}, "parameter 'topics': /odm not in "),
+        ('quadrotor_sim', {'inertia': [0.01, 0.02]},
+         "parameter 'inertia': needs 3 values > 0, got [0.01, 0.02]"),
+        ('quadrotor_sim', {'scenario': 'loop'},
+         "parameter 'scenario': 'loop' is not one of position, trajectory, hover"),
+        ('quadrotor_sim', {'vehicles': ['/1a']},
+         "parameter 'vehicles': vehicle namespace '/1a' must not start with a digit"),
+    ],
+)  # fmt: skip
+def test_every_node_refuses_a_startup_parameter_in_the_documented_form(
+    context, tmp_path, node, overrides, expected
+):
+    from cloe_ros.ros.player_node import PlayerNode
+    from cloe_ros.ros.recorder_node import BagRecorder
+
+    cls, params = {
+        'bag_recorder': (BagRecorder, {'output': str(tmp_path / 'bag')}),
+        'bag_player': (PlayerNode, {'bag': str(REPO / 'bags' / 'position')}),
+        'quadrotor_sim': (SimulatorNode, {}),
+    }[node]
+    overrides = [Parameter(k, value=v) for k, v in {**params, **overrides}.items()]
+    with pytest.raises(ParameterError) as info:
+        cls(context=context, parameter_overrides=overrides)
+    assert str(info.value).startswith(expected), str(info.value)
 
 
 def test_invalid_runtime_parameters_are_refused_with_a_reason(context):
@@ -244,6 +286,9 @@ def test_invalid_runtime_parameters_are_refused_with_a_reason(context):
             (Parameter('vehicles', value=['/x']), 'read-only'),
             (Parameter('sm_gains', value=[-1.0] * 12), 'sm_gains must be finite and >= 0'),
             (Parameter('max_gap', value=0.0), 'out of range'),
+            (Parameter('l_min', value=60.0), 'l_min must be at most l_max (50), got 60.0'),
+            # the frame is fixed when the node starts: refused rather than silently ignored
+            (Parameter('world_frame', value='map'), 'read-only parameter: world_frame'),
         ]
         for param, reason in cases:
             (result,) = inf.set_parameters([param])
@@ -253,16 +298,138 @@ def test_invalid_runtime_parameters_are_refused_with_a_reason(context):
         assert ok.successful and inf.engines[''].config.estimator.gamma_theta == 10.0
         (ok,) = inf.set_parameters([Parameter('algorithm', value='cloe')])
         assert ok.successful and inf.engines[''].config.estimator.algorithm == 'cloe'
-        # an integer where a float is expected is fine on the command line / in YAML
     finally:
         inf.destroy_node()
 
 
 def test_integer_overrides_for_float_parameters_are_accepted(context):
-    inf = InferenceNode(context=context, parameter_overrides=[Parameter('rate', value=50)])
+    inf = InferenceNode(context=context, parameter_overrides=[
+        Parameter('rate', value=50), Parameter('sm_gains', value=[0, 1] * 6)])  # fmt: skip
     try:
         assert inf.engine_config.rate == 50.0
         assert inf.get_parameter('rate').type_ == Parameter.Type.DOUBLE
+        assert inf.engine_config.estimator.sm_gains == (0.0, 1.0) * 6
+        assert inf.get_parameter('sm_gains').type_ == Parameter.Type.DOUBLE_ARRAY
+    finally:
+        inf.destroy_node()
+
+
+def test_the_parameter_service_sets_arrays_and_integers_for_floats(context):
+    """Through the parameter service, as ``ros2 param set`` does: rclpy hands double arrays over
+    as array.array, and an integer for a double is taken as at start-up, the type kept DOUBLE."""
+    inf = InferenceNode(context=context)
+    client_node = rclpy.create_node('client', context=context)
+    client = AsyncParameterClient(client_node, 'cloe_inference')
+    ex = _executor(context, inf, client_node)
+
+    def set_parameters(*params):
+        future = client.set_parameters(list(params))
+        assert spin_until(ex, future.done, timeout=10)
+        return future.result().results
+
+    try:
+        assert client.wait_for_services(timeout_sec=10)
+        gains, exponents = [0.2] * 12, [0.5] * 12
+        results = set_parameters(
+            Parameter('sm_gains', value=gains), Parameter('sm_exponents', value=exponents)
+        )
+        assert all(r.successful for r in results), results
+        config = inf.engines[''].config.estimator
+        assert (config.sm_gains, config.sm_exponents) == (tuple(gains), tuple(exponents))
+        (result,) = set_parameters(Parameter('sm_gains', value=[0.2] * 3))
+        assert not result.successful
+        assert result.reason == 'sm_gains needs 12 numbers, one per state, got 3'
+        (result,) = set_parameters(Parameter('rate', value=50))
+        assert result.successful, result.reason
+        assert inf.get_parameter('rate').type_ == Parameter.Type.DOUBLE
+        assert inf.get_parameter('rate').value == 50.0 and inf.engines[''].config.rate == 50.0
+        (result,) = set_parameters(Parameter('sm_gains', value=[1, 0] * 6))
+        assert result.successful, result.reason
+        assert inf.get_parameter('sm_gains').type_ == Parameter.Type.DOUBLE_ARRAY
+        assert inf.engines[''].config.estimator.sm_gains == (1.0, 0.0) * 6
+        (result,) = set_parameters(Parameter('rate', value=5000))  # still checked, as a double
+        assert not result.successful and 'out of range' in result.reason
+    finally:
+        ex.shutdown()
+        for n in (inf, client_node):
+            n.destroy_node()
+
+
+def test_the_node_declares_the_ranges_cloe_infer_checks(context):
+    """One range per setting (cloe_ros.io.config.RANGES), for the node and ``cloe infer``."""
+    inf = InferenceNode(context=context)
+    try:
+        for name, (low, high) in RANGES.items():
+            (declared,) = inf.describe_parameter(name).floating_point_range
+            assert (declared.from_value, declared.to_value) == (low, high), name
+    finally:
+        inf.destroy_node()
+
+
+T0 = 1_000_000_000_000
+
+
+@pytest.fixture(scope='module')
+def flight():
+    """8 s of the position scenario at 100 Hz: enough for cloe_iv's identifier to have state."""
+    res = QuadrotorSimulator(get_scenario('position'), dt=1e-3).run(8.0)
+    return res.t[::10], res.zeta[::10, 0], res.reference[::10, 0]
+
+
+def _feed(node, flight, ks, replica):
+    """Samples ``ks`` of ``flight`` into the node's callbacks as raw CDR (what DDS delivers), and
+    the same samples into ``replica``, an engine no parameter change reaches."""
+    t, zeta, r = flight
+    odom_cb, ref_cb = node._odometry_callback(''), node._reference_callback('')
+    out = []
+    for k in ks:
+        stamp = T0 + round(t[k] * 1e9)
+        raw_odom, raw_ref = _odom_bytes(stamp, zeta[k]), _ref_bytes(stamp, r[k])
+        odom_cb(raw_odom)
+        ref_cb(raw_ref)
+        replica.add_odometry(messages.decode_odometry(raw_odom))
+        replica.add_reference(messages.decode_pose_stamped(raw_ref))
+        out.extend(replica.advance())
+    return out
+
+
+def test_runtime_changes_keep_the_identified_model(context, flight):
+    """cloe_iv (the default): a change that does not concern the identifier keeps its state and
+    model; an identifier setting restarts the estimator (README, "The nodes")."""
+    inf = InferenceNode(context=context)
+    replica = VehicleEngine(inf.engine_config)
+    try:
+        engine = inf.engines['']
+        _feed(inf, flight, range(400), replica)
+        est = engine._est
+        assert est is not None and est.identifier.status.any()  # the identifier has state
+        for param in (
+            Parameter('max_gap', value=2.0),
+            Parameter('parameters_rate', value=20.0),
+            Parameter('reference_timeout', value=0.5),
+            Parameter('gamma_theta', value=10.0),  # (the paper's identifier gain: not cloe_iv's)
+        ):
+            (result,) = inf.set_parameters([param])
+            assert result.successful, (param.name, result.reason)
+        assert engine.config.max_gap == 2.0 and engine.config.reference_timeout == 0.5
+        assert inf.encoders[''].config.parameters_rate == 20.0
+        expected = _feed(inf, flight, range(400, 800), replica)
+        assert inf.engines[''] is engine and engine._est is est and engine.stats.resets == 0
+        last = inf._last_estimate['']
+        assert last.stamp_ns == expected[-1].stamp_ns
+        np.testing.assert_array_equal(last.theta_hat, expected[-1].theta_hat)
+        np.testing.assert_array_equal(last.zeta_hat, expected[-1].zeta_hat)
+        assert dict(inf.vehicle_status('', 0.0).values)['resets'] == '0'
+        # the observer's gains apply at once, to the same estimator
+        gains = array.array('d', [0.3] * 12)
+        (result,) = inf.set_parameters([Parameter('sm_gains', value=gains)])
+        assert result.successful, result.reason
+        assert engine._est is est and engine.stats.resets == 0
+        np.testing.assert_array_equal(est.lambda_[0], gains)
+        # an identifier setting restarts it: the model is forgotten
+        (result,) = inf.set_parameters([Parameter('id_window', value=30.0)])
+        assert result.successful, result.reason
+        assert engine.stats.resets == 1 and engine._est is None and engine._model is None
     finally:
         inf.destroy_node()
 

@@ -1,0 +1,108 @@
+"""Inference settings shared by the node and ``cloe infer``: ranges, lists, reasons."""
+
+from __future__ import annotations
+
+import array
+
+import numpy as np
+import pytest
+
+from cloe_ros.core.estimator import SM_GAINS_TABLE1
+from cloe_ros.io.config import DEFAULTS, RANGES, SettingsError, build_configs, load_settings
+
+
+@pytest.mark.parametrize(
+    ('key', 'value'),
+    [
+        ('rate', 3000.0),
+        ('gamma_theta', 2e6),
+        ('parameters_rate', 5000.0),
+        ('l_initial', 2e4),
+        ('l_leak', 2000.0),
+        ('ground_altitude', 2000.0),
+        ('ground_altitude', -2000.0),
+    ],
+)
+def test_values_the_node_refuses_are_refused(key, value):
+    """The node declares these ranges (RANGES); ``cloe infer --config`` takes the same keys, so a
+    value out of them is refused here too, naming the key and the range."""
+    low, high = RANGES[key]
+    assert not low <= value <= high
+    with pytest.raises(SettingsError) as info:
+        build_configs({key: value})
+    assert info.value.name == key
+    assert str(info.value) == f'{key} must be within [{low:g}, {high:g}], got {value!r}'
+    build_configs({key: low})
+    build_configs({key: high})
+
+
+def test_every_numeric_setting_has_one_range():
+    numeric = {k for k, v in DEFAULTS.items() if isinstance(v, float)}
+    assert set(RANGES) == numeric
+    assert all(low <= DEFAULTS[k] <= high for k, (low, high) in RANGES.items())
+
+
+@pytest.mark.parametrize(
+    'gains',
+    [
+        array.array('d', SM_GAINS_TABLE1),  # what rclpy hands over for a double array
+        np.array(SM_GAINS_TABLE1),
+        tuple(SM_GAINS_TABLE1),
+        list(SM_GAINS_TABLE1),
+        [0, 1, 0, 1, 0, 1, 0, 1, 0, 1, 0, 1],
+    ],
+    ids=['array', 'numpy', 'tuple', 'list', 'integers'],
+)
+def test_sm_gains_take_any_sequence_of_numbers(gains):
+    engine, _ = build_configs({'sm_gains': gains, 'sm_exponents': array.array('d', [0.5] * 12)})
+    assert engine.estimator.sm_gains == tuple(float(g) for g in gains)
+    assert engine.estimator.sm_exponents == (0.5,) * 12
+
+
+@pytest.mark.parametrize(
+    ('value', 'reason'),
+    [
+        ('0.1, 0.2', "sm_gains must be a list of numbers, got '0.1, 0.2'"),
+        ([0.1, 'x'] * 6, 'sm_gains must be a list of numbers'),
+        ([True] * 12, 'sm_gains must be a list of numbers'),
+        ({'a': 1.0}, 'sm_gains must be a list of numbers'),
+        (0.1, 'sm_gains must be a list of numbers, got 0.1'),
+        ([0.1], 'sm_gains needs 12 numbers, one per state, got 1'),
+        (array.array('d', [0.1] * 13), 'sm_gains needs 12 numbers, one per state, got 13'),
+        ([0.1] * 11 + [-1.0], 'sm_gains must be finite and >= 0, got -1.0 at index 11'),
+    ],
+)
+def test_bad_sm_gains_are_refused_with_a_reason(value, reason):
+    with pytest.raises(SettingsError) as info:
+        build_configs({'sm_gains': value})
+    assert str(info.value).startswith(reason)
+    assert info.value.name == 'sm_gains'
+
+
+@pytest.mark.parametrize(
+    ('values', 'name', 'reason'),
+    [
+        ({'algorithm': 'foo'}, 'algorithm', "'foo' is not one of cloe, cloe_sm, cloe_iv"),
+        ({'sm_exponents': [1.0] * 12}, 'sm_exponents', 'must lie in [0, 1), got 1.0 at index 0'),
+        ({'l_min': 60.0}, 'l_min', 'must be at most l_max (50), got 60.0'),
+        ({'id_highpass': 20.0}, 'id_highpass', 'must be below id_bandwidth (20), got 20.0'),
+        ({'prediction_step': 6.0}, 'prediction_step',
+         'must be at most prediction_horizon (5), got 6.0'),
+        ({'output_ns': 'a b'}, 'output_ns', "'a b' is not a valid namespace"),
+        ({'rate': 'fast'}, 'rate', "must be a number, got 'fast'"),
+        ({'estimate_coupling': 1}, 'estimate_coupling', 'must be true or false, got 1'),
+    ],
+)  # fmt: skip
+def test_refusals_name_the_setting(values, name, reason):
+    """The node reports ``parameter '<name>': <reason>``; ``cloe infer`` ``<name> <reason>``."""
+    with pytest.raises(SettingsError) as info:
+        build_configs(values)
+    assert (info.value.name, info.value.reason) == (name, reason)
+    assert str(info.value) == f'{name} {reason}'
+
+
+def test_a_file_names_itself_in_the_reason(tmp_path):
+    path = tmp_path / 'inference.yaml'
+    path.write_text('cloe_inference:\n  ros__parameters:\n    rate: 3000.0\n')
+    with pytest.raises(SettingsError, match=r'inference.yaml: rate must be within \[1, 2000\]'):
+        load_settings(path)

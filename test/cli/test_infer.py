@@ -296,7 +296,7 @@ def test_config_with_an_unknown_key(sim_bag, tmp_path, capsys):
 def test_config_with_an_out_of_range_rate(sim_bag, tmp_path, capsys):
     config = tmp_path / 'inference.yaml'
     config.write_text('cloe_inference:\n  ros__parameters:\n    rate: 0.5\n')
-    assert_error(capsys, f'{config}: rate must be within [1, 10000], got 0.5',
+    assert_error(capsys, f'{config}: rate must be within [1, 2000], got 0.5',
                  sim_bag, '-o', tmp_path / 'out', '--config', config)  # fmt: skip
     assert not (tmp_path / 'out').exists()
 

@@ -376,7 +376,7 @@ def truncated_bag(tmp_path: Path) -> Path:
         ({'bag': str(B2), 'rate': 0.0}, "ERROR: parameter 'rate'"),
         ({'bag': str(B2), 'rate': -1}, "ERROR: parameter 'rate'"),
         ({'bag': str(B2), 'rate': 101.0}, "ERROR: parameter 'rate'"),
-        ({'bag': str(B2), 'topics': ['/odm']}, 'ERROR: parameter topics: /odm not in'),
+        ({'bag': str(B2), 'topics': ['/odm']}, "ERROR: parameter 'topics': /odm not in"),
         ({'bag': 'UNKNOWN_TYPES'}, 'nothing to play (no topic can be published)'),
     ],
     ids=[

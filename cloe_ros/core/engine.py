@@ -20,11 +20,25 @@ Each input topic must arrive in stamp order (DDS keeps per-publisher order; bags
 order), so the estimates depend on the stamps alone, not on how the two topics interleave.
 
 Rejected inputs, never fed to the estimator, counted per reason: non-finite values, a quaternion
-far from unit norm, a frame other than the vehicle's world frame, a duplicate stamp, a stamp older
-than the previous one on the same topic. A forward gap longer than ``max_gap`` on the odometry is a
-time jump: the estimator is re-initialised on the new data (the identified model is kept). A jump
-backwards by more than ``max_gap`` (a restarted simulation or bag) clears the input buffers and
-re-initialises the same way.
+far from unit norm, values no quadrotor in a local world frame reaches (beyond ``MAX_POSITION``,
+``MAX_SPEED``, ``MAX_RATE``), a roll or pitch beyond ``MAX_TILT`` (outside the near-hover model,
+whose Euler rates are singular at 90 deg), a frame other than the vehicle's world frame (set by the
+first odometry or reference, never by a plan), a duplicate stamp, a stamp older than the previous
+one on the same topic.
+
+Time jumps. An odometry stamp more than ``max_gap`` from the previous one, forwards or backwards,
+is held aside: the next odometry decides. If it continues from the held sample (later, by at most
+``max_gap``), the jump is genuine: the steps of the old timeline are finished and the estimator is
+re-initialised on the new data (the identified model is kept); a jump backwards (a restarted
+simulation or bag) also drops the references and plan of the old timeline. If the next sample
+continues the old timeline instead, the held one is rejected as a ``stamp outlier``. So a single
+glitched stamp never reaches the estimator, and published stamps only go backwards on a genuine
+backward jump. A reference is held aside the same way, with the references that continue it,
+when it is not after the previous one and more than ``max_gap`` before the latest input, or more
+than ``max_gap`` after the previous one and ahead of the odometry: they are taken when the odometry
+jumps back to their timeline (or catches up with them), and rejected as ``reference stamp
+outlier`` when the next reference does not continue them. A latched reference of a restarted
+source, published before its odometry, is so kept for the new timeline.
 """
 
 from __future__ import annotations
@@ -39,12 +53,29 @@ import numpy as np
 from cloe_ros.core.algorithms import make_estimator
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
-from cloe_ros.core.kinematics import odometry_to_state_one, quaternion_yaw, unwrap_near
+from cloe_ros.core.kinematics import (
+    odometry_to_state_one,
+    quaternion_yaw,
+    roll_pitch_one,
+    unwrap_near,
+)
 from cloe_ros.core.model import unstable_blocks
 from cloe_ros.core.prediction import PredictionConfig, Predictor
 from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
 
 NS = 1_000_000_000
+
+#: Bounds of plausible inputs, generous for any quadrotor in a local world frame; beyond them an
+#: input is rejected (such values overflow the estimator's statistics, or leave its model).
+MAX_POSITION = 1e5  # m, each coordinate (odometry, reference, plan)
+MAX_SPEED = 1e3  # m/s, each body velocity component
+MAX_RATE = 1e3  # rad/s, each body rate
+MAX_TILT = math.radians(80.0)  # roll and pitch: the model linearises about hover in Euler angles
+#: Reference and plan quaternions are normalised before their yaw is taken, but for those of unit
+#: norm to round-off: dividing by 1 - 1e-16 would only add round-off to the yaw.
+ROUNDOFF = 1e-12
+#: References held aside at most (100 s at 100 Hz), waiting for the odometry to follow them.
+MAX_HELD_REFERENCES = 10_000
 
 
 @dataclass(frozen=True)
@@ -156,6 +187,35 @@ class VehicleStats:
     last_stamp_ns: int | None = None
 
 
+#: Why a held input turned out to be an outlier.
+NOT_CONTINUED = 'the next one did not continue it'
+
+
+class Rejection(str):
+    """Why an input was rejected: the reason (the counter's key, categorical) as the string, and
+    ``detail``, the offending value, for the logs."""
+
+    detail: str
+
+    def __new__(cls, reason: str, detail: str = '') -> Rejection:
+        obj = super().__new__(cls, reason)
+        obj.detail = detail
+        return obj
+
+    def describe(self) -> str:
+        """``reason: detail``."""
+        return f'{self}: {self.detail}' if self.detail else str(self)
+
+
+def seconds(stamp_ns: int) -> str:
+    """A stamp in seconds, every nanosecond shown (``1700000001.230000000 s``)."""
+    sec, nsec = divmod(int(stamp_ns), NS)
+    return f'{sec}.{nsec:09d} s'
+
+
+#: Numerical failures of a step (the estimator restarts, counted as ``diverged``).
+NUMERICAL_FAILURES = (ArithmeticError, np.linalg.LinAlgError)
+
 EstimatorFactory = Callable[[EstimatorConfig, np.ndarray, np.ndarray, float], object]
 
 
@@ -197,6 +257,10 @@ class VehicleEngine:
         self._history: deque[tuple[np.ndarray, np.ndarray]] = deque(
             maxlen=self._window * self._every + 1
         )
+        self._held_odom: OdometrySample | None = None  # a jump in time, until the next one
+        self._held_refs: deque[tuple[int, np.ndarray]] = deque()  # references off the timeline
+        self._held_refs_backward = False  # held for being behind it (else: ahead of it)
+        self._rejections: deque[Rejection] = deque(maxlen=100)  # for take_rejections
 
     # ----------------------------------------------------------------------------- inputs
 
@@ -205,48 +269,100 @@ class VehicleEngine:
         return self._frame
 
     def _check_frame(self, frame_id: str) -> str | None:
+        """What is wrong with ``frame_id`` (odometry and reference set the frame if unknown)."""
         if self._frame is None:
             self._frame = frame_id
             return None
         if frame_id != self._frame:
-            return 'wrong frame'
+            return f'received {frame_id!r}, expected {self._frame!r}'
         return None
 
-    def _check_stamp(self, stamp_ns: int, last_ns: int | None) -> str | None:
-        """'' for a backward time jump, a reason to reject, or None."""
-        if last_ns is None or stamp_ns > last_ns:
-            return None
-        if stamp_ns == last_ns:
-            return 'duplicate stamp'
-        if last_ns - stamp_ns > self.config.max_gap * NS:
-            return ''
-        return 'out-of-order stamp'
-
-    def _reject(self, reason: str) -> str:
+    def _reject(self, reason: str, detail: str = '') -> Rejection:
+        rejection = Rejection(reason, detail)
         self.stats.rejected[reason] += 1
-        return reason
+        self._rejections.append(rejection)
+        return rejection
 
-    def add_odometry(self, sample: OdometrySample) -> str | None:
-        """Accept an odometry sample; returns the reason if it was rejected."""
+    def take_rejections(self) -> list[Rejection]:
+        """The rejections since the last call, including those decided later than their input's
+        arrival (a held sample found to be an outlier), for the logs."""
+        out = list(self._rejections)
+        self._rejections.clear()
+        return out
+
+    def _latest_ns(self) -> int | None:
+        """The latest stamp accepted on odometry or reference (None before any)."""
+        stamps = [q[-1][0] for q in (self._odom, self._refs) if q]
+        return max(stamps) if stamps else None
+
+    def _odometry_problem(self, sample: OdometrySample) -> tuple[str, str] | None:
+        """(reason, detail) if the sample's values or frame are unusable."""
+        p, q, v, w = sample.position, sample.orientation, sample.linear, sample.angular
+        if not np.isfinite(np.concatenate((p, q, v, w))).all():
+            fields = zip(('position', 'orientation', 'linear', 'angular'), (p, q, v, w))
+            bad = ', '.join(n for n, a in fields if not np.isfinite(a).all())
+            return 'non-finite odometry', f'in {bad}'
+        norm = math.sqrt(float(q @ q))
+        if abs(norm - 1.0) > self.config.quaternion_tolerance:
+            return 'invalid quaternion', f'norm {norm:.6g}'
+        for name, values, bound, unit in (
+            ('position', p, MAX_POSITION, 'm'),
+            ('velocity', v, MAX_SPEED, 'm/s'),
+            ('angular rate', w, MAX_RATE, 'rad/s'),
+        ):
+            largest = float(np.max(np.abs(values)))
+            if largest > bound:
+                return f'{name} beyond {bound:g} {unit}', f'{largest:.6g} {unit}'
+        roll, pitch = roll_pitch_one(q)
+        if max(abs(roll), abs(pitch)) > MAX_TILT:
+            return (
+                f'tilt beyond {math.degrees(MAX_TILT):g} deg, outside the model',
+                f'roll {math.degrees(roll):.1f} deg, pitch {math.degrees(pitch):.1f} deg',
+            )
+        wrong = self._check_frame(sample.frame_id)
+        if wrong:
+            return 'wrong frame', wrong
+        return None
+
+    def add_odometry(self, sample: OdometrySample) -> Rejection | None:
+        """Accept an odometry sample; returns the reason if it was rejected. A sample that jumps
+        in time is held aside (None is returned) until the next one decides (module docstring)."""
         self.stats.odom_received += 1
-        values = np.concatenate(
-            (sample.position, sample.orientation, sample.linear, sample.angular)
-        )
-        if not np.isfinite(values).all():
-            return self._reject('non-finite odometry')
-        if abs(math.sqrt(values[3:7] @ values[3:7]) - 1.0) > self.config.quaternion_tolerance:
-            return self._reject('invalid quaternion')
-        reason = self._check_frame(sample.frame_id)
-        if reason:
-            return self._reject(reason)
+        problem = self._odometry_problem(sample)
+        if problem:
+            return self._reject(*problem)
+        stamp, gap = sample.stamp_ns, self.config.max_gap * NS
+        held = self._held_odom
+        if held is not None:
+            if 0 < stamp - held.stamp_ns <= gap:  # the new timeline goes on: a genuine jump
+                self._held_odom = None
+                self._time_jump(held.stamp_ns, backward=held.stamp_ns < self._odom[-1][0])
+                self._accept_odometry(held)
+                self._accept_odometry(sample)
+                return None
+            if stamp == held.stamp_ns:
+                return self._reject('duplicate stamp', seconds(stamp))
+            self._held_odom = None
+            self._reject_outlier(held.stamp_ns, 'stamp outlier', NOT_CONTINUED)
         last = self._odom[-1][0] if self._odom else None
-        reason = self._check_stamp(sample.stamp_ns, last)
-        if reason:
-            return self._reject(reason)
-        if reason == '':  # backwards jump: a new timeline
-            self._time_jump(sample.stamp_ns, clear_references=True)
-        elif last is not None and sample.stamp_ns - last > self.config.max_gap * NS:
-            self._time_jump(sample.stamp_ns, clear_references=False)
+        if last is not None and abs(stamp - last) > gap:
+            self._held_odom = sample  # a time jump, or a glitch: the next sample tells
+            return None
+        if last is not None and stamp == last:
+            return self._reject('duplicate stamp', seconds(stamp))
+        if last is not None and stamp < last:
+            return self._reject(
+                'out-of-order stamp', f'{seconds(stamp)}, {(last - stamp) / NS:.6g} s before the '
+                'previous one')  # fmt: skip
+        self._accept_odometry(sample)
+        return None
+
+    def _reject_outlier(self, stamp_ns: int, reason: str, why: str) -> None:
+        latest = self._latest_ns()
+        where = '' if latest is None else f', {(stamp_ns - latest) / NS:+.6g} s from the timeline'
+        self._reject(reason, f'{seconds(stamp_ns)}{where}; {why}')
+
+    def _accept_odometry(self, sample: OdometrySample) -> None:
         zeta = odometry_to_state_one(
             sample.position, sample.orientation, sample.linear, sample.angular
         )
@@ -257,62 +373,136 @@ class VehicleEngine:
             self.child_frame = sample.child_frame_id
         self._odom.append((sample.stamp_ns, zeta))
         self.stats.odom_accepted += 1
-        return None
+        held = self._held_refs
+        if held and not self._held_refs_backward:
+            if held[0][0] <= sample.stamp_ns + self.config.max_gap * NS:
+                self._take_held_references()  # the odometry caught up with them
 
-    def add_reference(self, sample: PoseSample) -> str | None:
-        """Accept a reference sample (position and yaw); returns the reason if rejected."""
+    def _take_held_references(self) -> None:
+        self._refs.extend(self._held_refs)
+        self.stats.reference_accepted += len(self._held_refs)
+        self._held_refs.clear()
+
+    def add_reference(self, sample: PoseSample) -> Rejection | None:
+        """Accept a reference sample (position and yaw); returns the reason if rejected. One that
+        jumps in time is held aside (None is returned) until the odometry or the next reference
+        decides (module docstring)."""
         self.stats.reference_received += 1
         q = sample.orientation
         if not (np.isfinite(sample.position).all() and np.isfinite(q).all()):
-            return self._reject('non-finite reference')
-        if abs(math.sqrt(q @ q) - 1.0) > self.config.quaternion_tolerance:
-            return self._reject('invalid reference quaternion')
-        reason = self._check_frame(sample.frame_id)
-        if reason:
-            return self._reject('wrong reference frame')
-        last = self._refs[-1][0] if self._refs else None
-        reason = self._check_stamp(sample.stamp_ns, last)
-        if reason:
-            return self._reject(f'reference {reason}')
-        if reason == '':
-            self._refs.clear()
+            bad = 'position' if not np.isfinite(sample.position).all() else 'orientation'
+            return self._reject('non-finite reference', f'in {bad}')
+        norm = math.sqrt(float(q @ q))
+        if abs(norm - 1.0) > self.config.quaternion_tolerance:
+            return self._reject('invalid reference quaternion', f'norm {norm:.6g}')
+        largest = float(np.max(np.abs(sample.position)))
+        if largest > MAX_POSITION:
+            return self._reject(
+                f'reference position beyond {MAX_POSITION:g} m', f'{largest:.6g} m'
+            )
+        wrong = self._check_frame(sample.frame_id)
+        if wrong:
+            return self._reject('wrong reference frame', wrong)
+        stamp, gap = sample.stamp_ns, self.config.max_gap * NS
         p = sample.position
-        x, y, z, w = (float(c) for c in q)
+        x, y, z, w = (float(c) / (norm if abs(norm - 1.0) > ROUNDOFF else 1.0) for c in q)
         yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-        r = np.array([p[0], p[1], yaw, p[2]])
-        self._refs.append((sample.stamp_ns, r))
+        entry = (stamp, np.array([p[0], p[1], yaw, p[2]]))
+        held = self._held_refs
+        if held:
+            if 0 < stamp - held[-1][0] <= gap:
+                held.append(entry)  # continues the held ones
+                if len(held) > MAX_HELD_REFERENCES:
+                    why = f'more than {MAX_HELD_REFERENCES} held, the odometry did not follow'
+                    self._reject_outlier(held.popleft()[0], 'reference stamp outlier', why)
+                return None
+            if stamp == held[-1][0]:
+                return self._reject('reference duplicate stamp', seconds(stamp))
+            self._drop_held_references()
+        last = self._refs[-1][0] if self._refs else None
+        if last is not None:
+            latest = self._latest_ns()
+            odom = self._odom[-1][0] if self._odom else None
+            behind = stamp <= last and stamp < latest - gap
+            ahead = stamp > last + gap and odom is not None and stamp > odom + gap
+            if behind or ahead:  # another timeline's, or a glitch: hold it aside
+                self._held_refs.append(entry)
+                self._held_refs_backward = behind
+                return None
+            if stamp == last:
+                return self._reject('reference duplicate stamp', seconds(stamp))
+            if stamp < last:
+                return self._reject(
+                    'reference out-of-order stamp', f'{seconds(stamp)}, '
+                    f'{(last - stamp) / NS:.6g} s before the previous one')  # fmt: skip
+        self._refs.append(entry)
         self.stats.reference_accepted += 1
         return None
 
-    def add_plan(self, sample: PathSample) -> str | None:
+    def _drop_held_references(self, why: str = NOT_CONTINUED) -> None:
+        for stamp, _ in self._held_refs:
+            self._reject_outlier(stamp, 'reference stamp outlier', why)
+        self._held_refs.clear()
+
+    def add_plan(self, sample: PathSample) -> Rejection | None:
         """Accept planned future references (poses stamped at future times); returns the reason
         if rejected. The latest plan is used for predictions until its last pose has passed."""
         self.stats.plans_received += 1
-        if not (
-            np.all(np.isfinite(sample.positions)) and np.all(np.isfinite(sample.orientations))
-        ):
+        stamps, p, q = sample.stamps_ns, sample.positions, sample.orientations
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
             return self._reject('non-finite plan')
-        if len(sample.stamps_ns) == 0:
+        if len(stamps) == 0:
             return self._reject('empty plan')
-        if np.any(np.diff(sample.stamps_ns) < 0):
-            return self._reject('plan stamps not increasing')
-        if self._check_frame(sample.frame_id):
-            return self._reject('wrong plan frame')
-        p = sample.positions
-        yaw = quaternion_yaw(sample.orientations)
+        largest = float(np.max(np.abs(p)))
+        if largest > MAX_POSITION:
+            return self._reject(f'plan position beyond {MAX_POSITION:g} m', f'{largest:.6g} m')
+        norms = np.sqrt(np.sum(q * q, axis=1))
+        worst = int(np.argmax(np.abs(norms - 1.0)))
+        if abs(norms[worst] - 1.0) > self.config.quaternion_tolerance:
+            return self._reject(
+                'invalid plan quaternion', f'pose {worst}: norm {norms[worst]:.6g}'
+            )
+        steps = np.diff(stamps)
+        if np.any(steps <= 0):
+            k = int(np.argmax(steps <= 0)) + 1
+            return self._reject(
+                'plan stamps not increasing',
+                f'pose {k} at {seconds(stamps[k])} after {seconds(stamps[k - 1])}',
+            )
+        if self._frame is None:
+            return self._reject(
+                'plan before the world frame', f'plan in {sample.frame_id!r}; the first odometry '
+                'or reference sets the frame')  # fmt: skip
+        if sample.frame_id != self._frame:
+            return self._reject(
+                'wrong plan frame', f'received {sample.frame_id!r}, expected {self._frame!r}'
+            )
+        latest = self._latest_ns()
+        if latest is not None and stamps[-1] <= latest:
+            return self._reject('stale plan', f'last pose at {seconds(stamps[-1])}, latest '
+                                f'input at {seconds(latest)}')  # fmt: skip
+        yaw = quaternion_yaw(q / np.where(np.abs(norms - 1.0) > ROUNDOFF, norms, 1.0)[:, None])
         refs = np.column_stack([p[:, 0], p[:, 1], np.unwrap(yaw), p[:, 2]])
-        self._plan = (np.asarray(sample.stamps_ns, dtype=np.int64), refs)
+        self._plan = (np.asarray(stamps, dtype=np.int64), refs)
         self.stats.plans_accepted += 1
         return None
 
-    def _time_jump(self, new_stamp_ns: int, clear_references: bool) -> None:
-        """Finish what can be finished, then restart the estimator at ``new_stamp_ns``."""
+    def _time_jump(self, new_stamp_ns: int, backward: bool) -> None:
+        """Finish what can be finished, then restart the estimator at ``new_stamp_ns``. Backwards,
+        the references held aside become the new timeline's (else those stamped after
+        ``new_stamp_ns`` are dropped: they are the old timeline's), and the plan is dropped."""
         self.stats.time_jumps += 1
         self._pending.extend(self._run(force_reference=True))
         self._stop_estimator()
         self._odom.clear()
-        if clear_references:
-            self._refs.clear()
+        if backward:
+            if self._held_refs and self._held_refs_backward:
+                self._refs.clear()
+                self._take_held_references()
+            else:
+                while self._refs and self._refs[-1][0] > new_stamp_ns:
+                    self._refs.pop()
+            self._plan = None
         self._anchor_ns, self._anchor_exact = new_stamp_ns, False
 
     def _stop_estimator(self) -> None:
@@ -373,9 +563,13 @@ class VehicleEngine:
 
     def finish(self) -> list[Estimate]:
         """No more input will come: run the remaining steps the odometry covers, holding the last
-        reference."""
+        reference. Inputs still held aside (an unconfirmed jump) are outliers."""
         out = self.advance()
         out.extend(self._run(force_reference=True))
+        if self._held_odom is not None:
+            self._reject_outlier(self._held_odom.stamp_ns, 'stamp outlier', 'nothing followed')
+            self._held_odom = None
+        self._drop_held_references('nothing confirmed it')
         return out
 
     def _measurement(self, t_ns: int) -> np.ndarray | None:
@@ -453,7 +647,11 @@ class VehicleEngine:
     def _run(self, force_reference: bool) -> list[Estimate]:
         out: list[Estimate] = []
         if self._est is None:
-            first = self._start(force_reference)
+            try:
+                first = self._start(force_reference)
+            except NUMERICAL_FAILURES:
+                self._diverged(self._start_time())
+                return out
             if first is None:
                 return out
             out.append(first)
@@ -468,18 +666,26 @@ class VehicleEngine:
             if zeta is None:
                 break
             r = self._reference_at(t_next, zeta[8])
-            est.step(zeta[None], r[None], h)
-            self._t_ns = t_next
-            self._last_r = r
-            self._track_offsets(zeta, r)
-            if not np.all(np.isfinite(est.zeta_hat)):
+            try:
+                est.step(zeta[None], r[None], h)
+                self._t_ns = t_next
+                self._last_r = r
+                self._track_offsets(zeta, r)
+                if not (np.all(np.isfinite(est.zeta_hat)) and np.all(np.isfinite(est.theta_hat))):
+                    raise FloatingPointError('non-finite estimate')
+                out.append(self._estimate(t_next, zeta, r))
+            except NUMERICAL_FAILURES:
                 # a diverged estimator never publishes: start over on the next step's data
-                self.stats.diverged += 1
-                self.reset()
-                self.stats.resets -= 1  # (counted as a divergence, not a user's reset)
+                self._diverged(t_next)
                 break
-            out.append(self._estimate(t_next, zeta, r))
         return out
+
+    def _diverged(self, t_ns: int | None) -> None:
+        """The estimator failed numerically at ``t_ns``: count it, restart at the next step."""
+        self.stats.diverged += 1
+        self._t_ns = t_ns
+        self.reset()
+        self.stats.resets -= 1  # (counted as a divergence, not a user's reset)
 
     def _estimate(self, t_ns: int, zeta: np.ndarray, r: np.ndarray) -> Estimate:
         est = self._est

@@ -149,6 +149,17 @@ def quaternion_yaw(q: np.ndarray) -> np.ndarray:
     return quaternion_to_euler(q)[..., 2]
 
 
+def roll_pitch_one(quaternion: np.ndarray) -> tuple[float, float]:
+    """Roll and pitch (rad) of one quaternion ``(x, y, z, w)``, normalised here: the tilt to check
+    before :func:`odometry_to_state_one`, whose Euler rates are singular at pitch +-pi/2."""
+    x, y, z, w = (float(c) for c in quaternion)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
+    return roll, pitch
+
+
 def odometry_to_state_one(
     position: np.ndarray, quaternion: np.ndarray, v_body: np.ndarray, w_body: np.ndarray
 ) -> np.ndarray:

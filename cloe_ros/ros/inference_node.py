@@ -105,6 +105,7 @@ class InferenceNode(Node):
         self.create_service(Trigger, '~/reset', self._reset_service)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._warned: set[tuple[str, str]] = set()
+        self._last_rejected: dict[str, str] = {}  # per vehicle: the last rejection, in words
         self._last_estimate: dict[str, object] = {}
         self._last_prediction_note: dict[str, str] = {}
         names = ', '.join(v or '/' for v in self.vehicles)
@@ -269,9 +270,8 @@ class InferenceNode(Node):
             except MessageError as err:
                 self._malformed(vehicle, 'odom', err)
                 return
-            reason = engine[vehicle].add_odometry(sample)
-            if reason:
-                self._warn_once(vehicle, reason)
+            engine[vehicle].add_odometry(sample)
+            self._warn_rejections(vehicle)
             self._publish(vehicle)
 
         return callback
@@ -285,9 +285,8 @@ class InferenceNode(Node):
             except MessageError as err:
                 self._malformed(vehicle, 'reference', err)
                 return
-            reason = engine[vehicle].add_reference(sample)
-            if reason:
-                self._warn_once(vehicle, reason)
+            engine[vehicle].add_reference(sample)
+            self._warn_rejections(vehicle)
             self._publish(vehicle)
 
         return callback
@@ -301,9 +300,8 @@ class InferenceNode(Node):
             except MessageError as err:
                 self._malformed(vehicle, 'reference_plan', err)
                 return
-            reason = engine[vehicle].add_plan(sample)
-            if reason:
-                self._warn_once(vehicle, reason)
+            engine[vehicle].add_plan(sample)
+            self._warn_rejections(vehicle)
 
         return callback
 
@@ -311,7 +309,14 @@ class InferenceNode(Node):
         self.malformed[vehicle] += 1
         self._warn_once(vehicle, f'malformed {topic}: {err}')
 
+    def _warn_rejections(self, vehicle: str) -> None:
+        """Warn of what the engine rejected (also a held input found to be an outlier later),
+        with what was wrong."""
+        for rejection in self.engines[vehicle].take_rejections():
+            self._warn_once(vehicle, rejection.describe())
+
     def _warn_once(self, vehicle: str, reason: str) -> None:
+        self._last_rejected[vehicle] = reason
         key = (vehicle, reason.split(':')[0])
         if key not in self._warned:
             self._warned.add(key)
@@ -379,12 +384,16 @@ class InferenceNode(Node):
         engine = self.engines[vehicle]
         s = engine.stats
         rejected = sum(s.rejected.values()) + self.malformed[vehicle]
+        last = self._last_rejected.get(vehicle, '')
         if not engine.started:
             level, message = messages.WARN, 'waiting for odom and reference'
+            if rejected:
+                message += f'; {rejected} input(s) rejected, the last: {last}'
         elif s.diverged:
             level, message = messages.WARN, f'running; the estimator diverged {s.diverged} time(s)'
         elif rejected:
-            level, message = messages.WARN, f'running; {rejected} input(s) rejected'
+            level = messages.WARN
+            message = f'running; {rejected} input(s) rejected, the last: {last}'
         else:
             level, message = messages.OK, 'running'
         note = self._last_prediction_note.get(vehicle, '')

@@ -301,6 +301,29 @@ def test_config_with_an_out_of_range_rate(sim_bag, tmp_path, capsys):
     assert not (tmp_path / 'out').exists()
 
 
+def test_an_absurd_reference_is_a_counted_rejection(sim_bag, tmp_path, capsys):
+    """One reference at x = 1e200 m made cloe_iv's identifier fail (LinAlgError: SVD did not
+    converge) and `cloe infer` end in a traceback; it is rejected and counted, naming the bound."""
+    bag = tmp_path / 'bag'
+    with BagReader(sim_bag) as reader, BagWriter(bag) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        n = 0
+        for topic, t, raw in reader.messages():
+            if topic == '/reference':
+                n += 1
+                if n == 300:
+                    pose = messages.decode_pose_stamped(raw)
+                    pose = dataclasses.replace(pose, position=np.array([1e200, 0.0, 1.0]))
+                    raw = messages.encode_pose_stamped(pose)
+            writer.write(topic, t, bytes(raw))
+    status, out, err = run_infer(capsys, bag, '-o', tmp_path / 'out', '-q', '--algorithm',
+                                 'cloe_iv')  # fmt: skip
+    assert status == 0 and 'Traceback' not in err, err
+    assert '/: 1501 steps, 1 input(s) rejected (reference position beyond 100000 m: 1)' in out
+    assert len(decoded(tmp_path / 'out', '/cloe/state')) == 1501
+
+
 # -- outputs ------------------------------------------------------------------------------------
 
 SOURCES = {

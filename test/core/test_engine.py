@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from cloe_ros.core.algorithms import make_estimator
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.estimator import (
     SM_GAINS_TABLE1,
@@ -15,7 +17,7 @@ from cloe_ros.core.estimator import (
     EstimatorConfig,
 )
 from cloe_ros.core.kinematics import state_to_odometry, wrap_angle, yaw_quaternion
-from cloe_ros.core.samples import OdometrySample, PoseSample
+from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
 from cloe_ros.core.simulator import QuadrotorSimulator, get_scenario
 
 T0 = 1_700_000_000 * NS  # an epoch-like start, as on real recordings
@@ -298,3 +300,252 @@ def test_an_unchanged_estimator_config_changes_nothing(flight):
     est = engine._est
     engine.update_estimator(replace(engine.config.estimator))
     assert engine.stats.resets == 0 and engine._est is est
+
+
+# -- implausible values, numerical failures -------------------------------------------------------
+
+IV = EngineConfig(estimator=EstimatorConfig('cloe_iv'))
+
+
+def _with(sample, **fields):
+    return replace(sample, stamp_ns=sample.stamp_ns + NS // 200, **fields)
+
+
+def _pitched(angle):
+    return np.array([0.0, math.sin(angle / 2), 0.0, math.cos(angle / 2)])
+
+
+@pytest.mark.parametrize(
+    'kind, change, reason, detail',
+    [
+        ('odom', {'position': np.array([1e200, 0, 1])}, 'position beyond 100000 m', '1e+200 m'),
+        ('odom', {'position': np.array([0, -2e5, 1])}, 'position beyond 100000 m', '200000 m'),
+        ('odom', {'linear': np.array([0, 0, 5e3])}, 'velocity beyond 1000 m/s', '5000 m/s'),
+        ('odom', {'angular': np.array([2e3, 0, 0])}, 'angular rate beyond 1000 rad/s',
+         '2000 rad/s'),
+        ('odom', {'orientation': _pitched(math.pi / 2)}, 'tilt beyond 80 deg, outside the model',
+         'pitch 90.0 deg'),
+        ('odom', {'orientation': _pitched(math.radians(81))},
+         'tilt beyond 80 deg, outside the model', 'pitch 81.0 deg'),
+        ('ref', {'position': np.array([1e200, 0, 1])}, 'reference position beyond 100000 m',
+         '1e+200 m'),
+        ('odom', {'orientation': np.array([0, 0, 0, 1.2])}, 'invalid quaternion', 'norm 1.2'),
+        ('odom', {'frame_id': 'map'}, 'wrong frame', "received 'map', expected 'world'"),
+    ],
+)  # fmt: skip
+def test_implausible_values_are_rejected_and_say_what_was_wrong(flight, kind, change, reason,
+                                                                 detail):  # fmt: skip
+    """cloe_iv: one absurd but finite odometry or reference (a reference at 1e200 m made the
+    identifier's SVD fail; an odometry at 1e100 m left the estimate 1e76 off; a pitch of 90 deg,
+    where the Euler rates are singular, threw it 1e13 off) is rejected, naming the bound and the
+    value, and the estimates are those of the clean run."""
+    odoms, refs = messages(flight, ref_every=1)
+    odoms, refs = odoms[:700], refs[:700]
+    clean = VehicleEngine(IV)
+    expected = run(clean, in_time_order(odoms, refs))
+    engine = VehicleEngine(IV)
+    seq = in_time_order(odoms, refs)
+    at = seq.index(('odom', odoms[500][1])) + 1
+    out = run(engine, seq[:at])
+    good = odoms[500][1] if kind == 'odom' else refs[500][1]
+    add = engine.add_odometry if kind == 'odom' else engine.add_reference
+    rejection = add(_with(good, **change))
+    assert rejection == reason and detail in rejection.detail, rejection.describe()
+    assert engine.take_rejections() == [reason]
+    out += engine.advance() + run(engine, seq[at:])
+    assert dict(engine.stats.rejected) == {reason: 1} and engine.stats.diverged == 0
+    np.testing.assert_array_equal(
+        np.array([e.zeta_hat for e in out]), np.array([e.zeta_hat for e in expected])
+    )
+
+
+class _FailingEstimator:
+    """An estimator whose step ``fail_at`` raises as a singular matrix would (LinAlgError)."""
+
+    def __init__(self, est, fail_at):
+        self._est, self._fail_at, self._steps = est, fail_at, 0
+
+    def __getattr__(self, name):
+        return getattr(self._est, name)
+
+    def step(self, *args):
+        self._steps += 1
+        if self._steps == self._fail_at:
+            raise np.linalg.LinAlgError('SVD did not converge')
+        self._est.step(*args)
+
+
+def test_a_numerical_failure_in_a_step_counts_as_divergence_and_restarts(flight):
+    odoms, refs = messages(flight)
+    made = []
+
+    def factory(*args):
+        made.append(_FailingEstimator(make_estimator(*args), fail_at=200 if not made else 0))
+        return made[-1]
+
+    engine = VehicleEngine(IV, estimator_factory=factory)
+    out = run(engine, in_time_order(odoms[:600], refs[:300]))
+    assert engine.stats.diverged == 1 and engine.stats.resets == 0 and len(made) == 2
+    stamps = np.array([e.stamp_ns for e in out])
+    # the failed step publishes nothing; the estimator restarts on the next step's data
+    gap = np.flatnonzero(np.diff(stamps) != NS // 100)
+    assert len(gap) == 1 and stamps[gap[0] + 1] - stamps[gap[0]] == 2 * NS // 100
+    np.testing.assert_array_equal(out[gap[0] + 1].zeta_hat, out[gap[0] + 1].measured)
+    assert all(np.all(np.isfinite(e.zeta_hat)) for e in out)
+
+
+# -- quaternions of references and plans; plans ---------------------------------------------------
+
+
+def _plan(stamps, frame='world', q=None, position=(1.0, 2.0, 1.5)):
+    stamps = np.asarray(stamps, dtype=np.int64)
+    q = yaw_quaternion(0.3) if q is None else np.asarray(q)
+    return PathSample(int(stamps[0]), frame, stamps, np.tile(position, (len(stamps), 1)),
+                      np.tile(q, (len(stamps), 1)))  # fmt: skip
+
+
+def test_reference_quaternions_are_normalised_before_the_yaw_is_taken(flight):
+    """1.09 q(90 deg) is within the norm tolerance; unnormalised its yaw would be 99 deg."""
+    odoms, refs = messages(flight, ref_every=1)
+    engine = VehicleEngine(EngineConfig())
+    seq = []
+    for (_, o), (_, r) in zip(odoms[:100], refs[:100]):
+        scaled = replace(r, orientation=1.09 * yaw_quaternion(math.pi / 2))
+        seq += [('ref', scaled), ('odom', o)]
+    out = run(engine, seq)
+    assert out and all(abs(e.reference[2] - math.pi / 2) < 1e-12 for e in out)
+
+
+def test_plans_are_checked_and_normalised_like_references(flight):
+    odoms, refs = messages(flight)
+    engine = VehicleEngine(EngineConfig())
+    run(engine, in_time_order(odoms[:300], refs[:150]))
+    now = odoms[299][0]
+    future = now + NS // 10 * np.arange(1, 51)
+    assert engine.add_plan(_plan(future, q=[0, 0, 0, 0])) == 'invalid plan quaternion'
+    rejection = engine.add_plan(_plan(future, q=1.5 * yaw_quaternion(math.pi / 2)))
+    assert rejection == 'invalid plan quaternion' and 'norm 1.5' in rejection.detail
+    assert engine._plan is None
+    assert engine.add_plan(_plan(future, q=1.09 * yaw_quaternion(math.pi / 2))) is None
+    np.testing.assert_allclose(engine._plan[1][:, 2], math.pi / 2, atol=1e-12)
+    accepted = engine._plan
+    # a plan wholly in the past (100 s ago) or with equal stamps does not replace it
+    assert engine.add_plan(_plan(future - 100 * NS)) == 'stale plan'
+    assert engine.add_plan(_plan(np.full(50, now + NS))) == 'plan stamps not increasing'
+    assert engine.add_plan(_plan([now - NS, now])) == 'stale plan'  # no pose after the latest
+    assert engine._plan is accepted
+    assert engine.add_plan(_plan([now - NS, now + 1])) is None  # one pose ahead is enough
+    assert engine.add_plan(_plan(future, position=(1e6, 0, 1))) == 'plan position beyond 100000 m'
+    assert dict(engine.stats.rejected) == {
+        'invalid plan quaternion': 2, 'stale plan': 2, 'plan stamps not increasing': 1,
+        'plan position beyond 100000 m': 1}  # fmt: skip
+
+
+def test_a_plan_before_any_odometry_or_reference_does_not_set_the_frame(flight):
+    """With world_frame '' the first odometry or reference sets the frame; a plan in 'map'
+    arriving first used to lock it to 'map' and every later input was rejected."""
+    odoms, refs = messages(flight)
+    engine = VehicleEngine(EngineConfig())
+    rejection = engine.add_plan(_plan([T0, T0 + NS], frame='map'))
+    assert rejection == 'plan before the world frame' and "'map'" in rejection.detail
+    assert engine.world_frame is None
+    out = run(engine, in_time_order(odoms[:100], refs[:50]))
+    assert engine.world_frame == 'world' and len(out) > 50
+    assert dict(engine.stats.rejected) == {'plan before the world frame': 1}
+
+
+# -- time jumps and stamp outliers ----------------------------------------------------------------
+
+
+def _stamped(sample, stamp_ns):
+    return replace(sample, stamp_ns=stamp_ns)
+
+
+@pytest.mark.parametrize('offset_s', [100.0, -5.0])
+def test_a_single_odometry_stamp_off_the_timeline_is_an_outlier(flight, offset_s):
+    """One odometry stamp 100 s ahead (or 5 s behind) is not a time jump: the next one continues
+    the old timeline, so it is rejected as a stamp outlier; published stamps never go back (they
+    went 4.99 -> 105.0 -> 5.01 s) and the estimates are those of the clean run."""
+    odoms, refs = messages(flight)
+    odoms, refs = odoms[:800], refs[:400]
+    clean = VehicleEngine(EngineConfig())
+    expected = run(clean, in_time_order(odoms, refs)) + clean.finish()
+    engine = VehicleEngine(EngineConfig())
+    seq = in_time_order(odoms, refs)
+    at = seq.index(('odom', odoms[500][1])) + 1
+    glitch = _stamped(odoms[500][1], odoms[500][0] + round(offset_s * NS))
+    out = run(engine, [*seq[:at], ('odom', glitch), *seq[at:]]) + engine.finish()
+    assert engine.stats.time_jumps == 0
+    assert dict(engine.stats.rejected) == {'stamp outlier': 1}
+    (rejection,) = engine.take_rejections()
+    assert f'{offset_s:+g} s from the timeline' in rejection.detail, rejection.detail
+    stamps = np.array([e.stamp_ns for e in out])
+    assert np.all(np.diff(stamps) > 0)
+    np.testing.assert_array_equal(
+        np.array([e.zeta_hat for e in out]), np.array([e.zeta_hat for e in expected])
+    )
+
+
+@pytest.mark.parametrize('offset_s', [-5.0, 100.0])
+def test_a_single_reference_stamp_off_the_timeline_is_an_outlier(flight, offset_s):
+    """A reference 5 s before the latest one used to be taken silently, clearing the references;
+    it is held aside, and counted as an outlier when the next one continues the timeline."""
+    odoms, refs = messages(flight)
+    odoms, refs = odoms[:800], refs[:400]
+    clean = VehicleEngine(EngineConfig())
+    expected = run(clean, in_time_order(odoms, refs)) + clean.finish()
+    engine = VehicleEngine(EngineConfig())
+    seq = in_time_order(odoms, refs)
+    at = seq.index(('ref', refs[250][1])) + 1
+    glitch = _stamped(refs[250][1], refs[250][0] + round(offset_s * NS))
+    out = run(engine, [*seq[:at], ('ref', glitch), *seq[at:]]) + engine.finish()
+    assert engine.stats.time_jumps == 0
+    assert dict(engine.stats.rejected) == {'reference stamp outlier': 1}
+    np.testing.assert_array_equal(
+        np.array([e.zeta_hat for e in out]), np.array([e.zeta_hat for e in expected])
+    )
+
+
+def _new_timeline(out):
+    """The estimates from the first one stamped before its predecessor on (the old timeline's
+    last steps come first: they are finished when the jump is confirmed)."""
+    (back,) = np.flatnonzero(np.diff([e.stamp_ns for e in out]) < 0)
+    return out[back + 1 :]
+
+
+def test_a_latched_reference_of_a_restarted_source_is_kept(flight):
+    """A source restarted from t = 0 publishes its setpoint once (latched), before its first
+    odometry: that reference belongs to the new timeline, and the estimator restarts on it."""
+    t, zeta, r = flight
+    hover = r[0]
+    engine = VehicleEngine(EngineConfig())
+
+    def timeline():
+        return [('ref', ref(T0, hover))] + [
+            ('odom', odom(T0 + round(t[k] * NS), zeta[k])) for k in range(300)
+        ]
+
+    first = run(engine, timeline())
+    second = _new_timeline(run(engine, timeline()))
+    assert engine.stats.time_jumps == 1 and not engine.stats.rejected
+    assert len(second) == len(first) and second[0].stamp_ns == T0
+    np.testing.assert_array_equal(second[0].zeta_hat, second[0].measured)
+
+
+def test_a_restart_whose_references_come_first_keeps_them(flight):
+    """References of the new timeline that arrive before its odometry (or between its first two
+    odometry messages) are the new timeline's; those of the old one are dropped."""
+    odoms, refs = messages(flight)
+    engine = VehicleEngine(EngineConfig())
+    run(engine, in_time_order(odoms[:500], refs[:250]))
+    # the restarted source: its first references, then the odometry with the rest interleaved
+    seq = [('ref', m) for _, m in refs[:3]] + in_time_order(odoms[:400], refs[3:200])
+    after = _new_timeline(run(engine, seq) + engine.finish())
+    fresh = VehicleEngine(EngineConfig())
+    alone = run(fresh, in_time_order(odoms[:400], refs[:200])) + fresh.finish()
+    assert engine.stats.time_jumps == 1 and not engine.stats.rejected
+    assert after[0].stamp_ns == T0
+    assert [e.stamp_ns for e in after] == [e.stamp_ns for e in alone]
+    np.testing.assert_array_equal(
+        np.array([e.reference for e in after]), np.array([e.reference for e in alone])
+    )

@@ -11,6 +11,7 @@ import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
+from nav_msgs.msg import Path as PathMessage
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -178,6 +179,54 @@ def test_bad_inputs_are_rejected_counted_and_reported(context):
         assert len(states) >= 190
         assert all(np.all(np.isfinite(s.position)) for s in states)
         assert max(abs(s.position[2] - 1.0) for s in states) < 1e-9
+    finally:
+        ex.shutdown()
+        for n in (inf, pub_node, col.node):
+            n.destroy_node()
+
+
+def test_a_plan_before_the_odometry_does_not_set_the_world_frame(context):
+    """world_frame '': a reference_plan in 'map' that arrives first used to lock the frame to
+    'map', and every odometry and reference in 'world' was then rejected as the wrong frame."""
+    inf = InferenceNode(context=context, parameter_overrides=[
+        Parameter('diagnostics_period', value=0.2)])  # fmt: skip
+    pub_node = rclpy.create_node('source', context=context)
+    odom = pub_node.create_publisher(Odometry, 'odom', 100)
+    ref = pub_node.create_publisher(messages_pose_type(), 'reference', 100)
+    plan = pub_node.create_publisher(PathMessage, 'reference_plan', 100)
+    col = Collector(context, {'cloe/state': Odometry, '/diagnostics': DiagnosticArray})
+    ex = _executor(context, inf, pub_node, col.node)
+    try:
+        assert spin_until(ex, lambda: plan.get_subscription_count() >= 1, timeout=10)
+        assert spin_until(ex, lambda: odom.get_subscription_count() >= 1, timeout=10)
+        t0 = 1_000_000_000_000
+        stamps = t0 + np.arange(1, 11) * 100_000_000
+        plan.publish(messages.encode_path(messages.PathSample(
+            t0, 'map', stamps, np.tile([0.0, 0.0, 1.0], (10, 1)),
+            np.tile([0.0, 0.0, 0.0, 1.0], (10, 1)))))  # fmt: skip
+        spin_until(ex, lambda: False, timeout=0.2)
+        zeta = np.zeros(12)
+        zeta[10] = 1.0
+        for k in range(100):
+            stamp = t0 + k * 10_000_000
+            odom.publish(_odom_bytes(stamp, zeta))
+            ref.publish(_ref_bytes(stamp, np.array([0.0, 0.0, 0.0, 1.0])))
+            spin_until(ex, lambda: False, timeout=0.002)
+
+        def counted():
+            if not col.msgs['/diagnostics']:
+                return False
+            _, (st,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+            return int(dict(st.values)['odom_received']) >= 100
+
+        assert spin_until(ex, counted, timeout=10)
+        _, (status,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+        values = dict(status.values)
+        assert values['rejected: plan before the world frame'] == '1'
+        assert values['odom_accepted'] == '100' and values['reference_accepted'] == '100'
+        assert "the last: plan before the world frame: plan in 'map'" in status.message
+        assert len(col.msgs['cloe/state']) >= 90
+        assert messages.decode_odometry(col.msgs['cloe/state'][-1]).frame_id == 'world'
     finally:
         ex.shutdown()
         for n in (inf, pub_node, col.node):

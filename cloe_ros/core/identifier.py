@@ -118,8 +118,8 @@ def loop_row(p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
 
 def cascade_prior() -> tuple[np.ndarray, np.ndarray]:
     """The model used before anything is identified: for x-theta and y-phi the reduced cascade
-    with the assumed attitude loop and the prior position loop (poles about -1.7 +- 1.0j and
-    -8.1 +- 10.4j, a more quadrotor-like response than :func:`generic_prior`'s); psi and z as
+    with the assumed attitude loop and the prior position loop (poles about -2.13 +- 1.32j and
+    -7.67 +- 8.09j, a more quadrotor-like response than :func:`generic_prior`'s); psi and z as
     there."""
     theta, coupling = generic_prior()
     for block, sl, c in zip(BLOCKS, BLOCK_SLICES, (*PAPER_COUPLING, None, None)):
@@ -627,7 +627,7 @@ class IvIdentifier:
         self.theta, self.coupling, self.loops = self._denormalise(rows)
 
     def _update_excitation(self) -> None:
-        """Canonical correlations, uncertainty and status of every row (every 0.1 s)."""
+        """Canonical correlations, uncertainty and status of every row (every 0.25 s)."""
         cfg = self.config
         n = self.theta.shape[0]
         exc = np.zeros((n, N_ROWS))

@@ -129,10 +129,11 @@ class InferenceNode(Node):
             ('rate', DEFAULTS['rate'], describe(
                 'estimator steps per second of message time, Hz (changing it restarts)')),
             ('gamma_theta', DEFAULTS['gamma_theta'], describe(
-                'identifier gain Gamma (paper: 400)')),
+                'cloe, cloe_sm: identifier gain Gamma (paper: 400)')),
             ('gamma_l', DEFAULTS['gamma_l'], describe(
                 'adaptive observer-gain rate gamma (paper: 400)')),
-            ('l_initial', DEFAULTS['l_initial'], describe('initial observer gain L(0), 1/s')),
+            ('l_initial', DEFAULTS['l_initial'], describe(
+                'initial observer gain L(0), 1/s (cloe_iv: at least l_min)')),
             ('sm_gains', DEFAULTS['sm_gains'], describe(
                 'sliding-mode gains alpha, one per state (paper Table 1)',
                 additional_constraints='12 values >= 0')),
@@ -183,7 +184,7 @@ class InferenceNode(Node):
                 'cloe_iv: identify the tilt couplings (the paper fixes them at +-g)')),
             ('ground_altitude', DEFAULTS['ground_altitude'], describe(
                 'cloe_iv: identification pauses while the commanded altitude is at or below '
-                'this, m (negative: never)')),
+                'this, m (below every commanded altitude: never)')),
             ('diagnostics_period', 1.0, describe(
                 '/diagnostics period, s', float_range=(0.05, 60.0), **ro)),
             ('qos_reliability', 'reliable', describe(

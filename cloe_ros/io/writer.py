@@ -4,7 +4,9 @@
 :meth:`BagWriter.flush`, which closes the pending MCAP chunk and hands the file to the operating
 system. Whatever was written before the last ``flush()`` survives a SIGKILL of the process: the
 ``.mcap`` then lacks its summary and footer and the directory its ``metadata.yaml``, and
-``cloe bag recover`` (:mod:`cloe_ros.io.recover`) turns it back into a complete bag.
+``cloe bag recover`` (:mod:`cloe_ros.io.recover`) turns it back into a complete bag. The same
+holds after a write failure (a full disk): the writer stops at the first one, see
+:class:`BagWriter`.
 
 No rclpy here: messages are raw CDR bytes, times are int nanoseconds.
 """
@@ -76,6 +78,14 @@ class BagWriter:
     loses power may: there is no fsync). :meth:`close` writes the MCAP summary and footer and
     ``metadata.yaml``.
 
+    Write failures (``OSError``: a full disk, an I/O error) are final: the first one leaves the
+    file with a cut record, so the writer closes it at once without summary, drops the pending
+    chunk and raises :class:`WriterError`; :attr:`error` then says why, every later call but
+    :meth:`flush` (which does nothing) raises, and :meth:`close` raises after marking the writer
+    closed. :attr:`message_count` and :attr:`topic_counts` go back to the messages handed to the
+    operating system before the failure, which ``cloe bag recover`` gets back. Nothing grows in
+    memory after a failure.
+
     Args:
         path: the bag directory to create.
         compression: ``'zstd'`` compresses each MCAP chunk (rosbag2 "storage" compression, read by
@@ -107,7 +117,10 @@ class BagWriter:
         self._connections: dict[str, Connection] = {}
         self._counts: dict[str, int] = {}
         self._payload_bytes = 0
-        self._flushes = 0
+        self._chunks = 0
+        #: counts and payload bytes of the messages handed to the OS (by flush() or a full chunk)
+        self._saved: tuple[dict[str, int], int] = ({}, 0)
+        self._error: str | None = None
 
     # -- rosbags internals used by flush() ---------------------------------------------------
 
@@ -157,14 +170,42 @@ class BagWriter:
         return self._payload_bytes
 
     @property
-    def flush_count(self) -> int:
-        """How many times :meth:`flush` wrote a pending chunk."""
-        return self._flushes
+    def chunk_count(self) -> int:
+        """MCAP chunks written to the file so far: by :meth:`flush` and on reaching rosbags' chunk
+        size (1 MiB of messages)."""
+        return self._chunks
+
+    @property
+    def error(self) -> str | None:
+        """Why writing the file failed (the ``OSError``), or None while all is well."""
+        return self._error
 
     def _require_open(self) -> None:
+        if self._error is not None:
+            msg = f'bag {self.path} failed already: {self._error}'
+            raise WriterError(msg)
         if self._closed:
             msg = f'bag {self.path} is closed already'
             raise WriterError(msg)
+
+    def _saved_to_os(self) -> None:
+        self._saved = (dict(self._counts), self._payload_bytes)
+
+    def _fail(self, err: Exception) -> WriterError:
+        """Stop writing after a failed write to the file: close it as it is (what is on disk stays
+        recoverable), drop the pending chunk, count only the messages handed to the OS."""
+        self._error = str(err)
+        try:
+            self._writer.abort()  # closes the file; its buffer cannot be written and is dropped
+        except (RosbagsWriterError, OSError):
+            pass
+        counts, self._payload_bytes = self._saved
+        self._counts = {name: counts.get(name, 0) for name in self._counts}
+        msg = (
+            f'cannot write bag {self.path}: {err}; nothing more is written to it '
+            f'({self.message_count} messages are in the file)'
+        )
+        return WriterError(msg)
 
     def add_topic(self, name: str, msgtype: str, offered_qos: str | Sequence = ()) -> None:
         """Add a topic of ``msgtype`` (e.g. ``nav_msgs/msg/Odometry``), a Jazzy type.
@@ -202,6 +243,24 @@ class BagWriter:
         self._connections[name] = conn
         self._counts[name] = 0
 
+    def add_offered_qos(self, name: str, offered_qos: str | Sequence) -> None:
+        """Add the QoS profiles of publishers that joined topic ``name`` after :meth:`add_topic`
+        (same forms as there); profiles the topic has already are not repeated.
+
+        They go into ``metadata.yaml`` when the bag is closed. The MCAP channel record keeps the
+        profiles given to :meth:`add_topic`: it is in the file already, and a channel cannot
+        change within an MCAP file.
+        """
+        self._require_open()
+        conn = self._connections.get(name)
+        if conn is None:
+            msg = f'topic {name} was not added to bag {self.path}: call add_topic() first'
+            raise WriterError(msg)
+        stored = conn.ext.offered_qos_profiles  # the list metadata.yaml is made from at close()
+        for qos in _offered_qos(name, offered_qos):
+            if qos not in stored:
+                stored.append(qos)
+
     def write(self, topic: str, log_time_ns: int, data: bytes | memoryview) -> None:
         """Write one message: raw CDR ``data`` received at ``log_time_ns`` (int ns)."""
         self._require_open()
@@ -213,15 +272,23 @@ class BagWriter:
         if log_time_ns < 0:
             msg = f'log time of a message on {topic} must be >= 0 ns, got {log_time_ns}'
             raise WriterError(msg)
+        storage = self._writer.storage
+        pending = storage.chunk
         try:
             self._writer.write(conn, log_time_ns, data)
         except RosbagsWriterError as err:
             raise WriterError(str(err)) from err
         except OSError as err:  # a full chunk goes to the file here
-            msg = f'cannot write bag {self.path}: {err}'
-            raise WriterError(msg) from err
+            raise self._fail(err) from err
         self._counts[topic] += 1
         self._payload_bytes += len(data)
+        if storage.chunk is not pending:  # the chunk reached rosbags' size and was written
+            self._chunks += 1
+            try:
+                storage.bio.flush()
+            except OSError as err:
+                raise self._fail(err) from err
+            self._saved_to_os()
 
     def flush(self) -> None:
         """Write the pending chunk (if it holds anything) and flush the file to the OS.
@@ -229,20 +296,20 @@ class BagWriter:
         After this returns, every message written so far is in the operating system's hands and
         survives a SIGKILL of this process. A closed writer has nothing to flush.
         """
-        if self._closed:
+        if self._closed or self._error is not None:
             return
         storage = self._writer.storage
         try:
             if storage.chunk.bio.tell():
                 storage.close_chunk()
-                self._flushes += 1
+                self._chunks += 1
             storage.bio.flush()
         except AttributeError as err:  # pragma: no cover - guarded by _check_storage_internals
             msg = f'rosbags {_rosbags_version()} changed its MCAP storage writer: {err}'
             raise WriterError(msg) from err
         except OSError as err:
-            msg = f'cannot write bag {self.path}: {err}'
-            raise WriterError(msg) from err
+            raise self._fail(err) from err
+        self._saved_to_os()
 
     def set_custom_data(self, key: str, value: str) -> None:
         """A key-value pair for the ``custom_data`` of ``metadata.yaml`` (rosbag2's place for what
@@ -256,21 +323,21 @@ class BagWriter:
     def close(self) -> None:
         """Finish the bag: pending chunk, MCAP summary and footer, ``metadata.yaml``.
 
-        Idempotent. If finishing fails, the ``.mcap`` is left as it is (recoverable with
-        ``cloe bag recover``) and :class:`WriterError` says why.
+        Idempotent. If finishing fails, or writing failed before, the ``.mcap`` is left as it is
+        (recoverable with ``cloe bag recover``), :attr:`error` and :class:`WriterError` say why,
+        and the counts are those of the messages handed to the OS.
         """
         if self._closed:
             return
         self._closed = True
-        try:
-            self._writer.close()
-        except (RosbagsWriterError, OSError) as err:
+        if self._error is None:
             try:
-                self._writer.abort()
-            except (RosbagsWriterError, OSError):
-                pass
-            msg = f'cannot finish bag {self.path}: {err}; try `cloe bag recover {self.path}`'
-            raise WriterError(msg) from err
+                self._writer.close()
+                return
+            except (RosbagsWriterError, OSError) as err:
+                self._fail(err)
+        msg = f'cannot finish bag {self.path}: {self._error}; try `cloe bag recover {self.path}`'
+        raise WriterError(msg)
 
     def __enter__(self) -> BagWriter:
         return self

@@ -5,7 +5,9 @@ Jazzy type (and has Python type support installed) gets a raw subscription whose
 publishers, and every message goes into the bag as received (CDR bytes, log time = this node's
 clock at reception, so ``use_sim_time`` gives sim-time bags). Every ``flush_period`` the pending
 chunk goes to the file: a SIGKILL loses at most that much. SIGINT / SIGTERM close the bag
-completely. ``/diagnostics`` reports counts every second. See docs/recorder.md.
+completely. ``/diagnostics`` reports counts every second. A failed write (a full disk) ends the
+writing for good: the node keeps counting what it drops, reports ERROR and exits with status 1 when
+stopped. See docs/recorder.md.
 """
 
 from __future__ import annotations
@@ -40,8 +42,6 @@ from cloe_ros.ros import common
 NODE_NAME = 'bag_recorder'
 #: Topics never recorded unless listed in ``topics``.
 EXCLUDED_TOPICS = ('/rosout', '/parameter_events')
-#: Parameters fixed once the node runs.
-READ_ONLY = ('output', 'topics', 'compression', 'qos_depth')
 #: (min, max) of the period parameters, s.
 DISCOVERY_RANGE = (0.05, 10.0)
 FLUSH_RANGE = (0.05, 1.0)
@@ -118,7 +118,7 @@ class TopicStats:
     received: int = 0
     lost: int = 0
     errors: int = 0
-    bytes: int = 0
+    bytes: int = 0  # CDR bytes received
 
 
 def check_period(value, bounds: tuple[float, float]) -> str | None:
@@ -138,11 +138,14 @@ class BagRecorder(Node):
         super().__init__(NODE_NAME, **kwargs)
         self._writer: BagWriter | None = None
         self._closed = False
+        #: why the bag is not complete (a write failure, or closing it failed), or None
+        self.failed: str | None = None
         self._declare()
         self._stats: dict[str, TopicStats] = {}
         self._recorded_subs: dict[str, object] = {}
         self._skipped: dict[str, str] = {}
         self._type_conflicts: set[str] = set()
+        self._publisher_gids: dict[str, set[tuple]] = {}  # endpoint GIDs seen per recorded topic
         self._flush_errors = 0
         try:
             self._writer = BagWriter(Path(self.output), self.compression)
@@ -155,12 +158,12 @@ class BagRecorder(Node):
         self._diag_timer = self._wall_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
-        self._discover()
         wanted = ', '.join(self.topics) if self.topics else 'all topics'
         self.get_logger().info(
             f'recording to {self.output} ({wanted}; compression {self.compression}; '
             f'flush every {self.flush_period} s)'
         )
+        self._discover()
 
     def _wall_timer(self, period: float, callback):
         """A timer on the steady clock: discovery, flushing and diagnostics go on when the ROS
@@ -226,7 +229,8 @@ class BagRecorder(Node):
                 int_range=QOS_DEPTH_RANGE,
             ),
         )
-        if not self.output.strip():
+        if not isinstance(self.output, str) or not self.output.strip():
+            # `output:="  "` reaches rclpy as YAML null: no value at all
             raise common.ParameterError('must name a bag directory', 'output')
         if self.compression not in COMPRESSIONS:
             reason = f'{self.compression!r} is not one of {", ".join(COMPRESSIONS)}'
@@ -244,11 +248,8 @@ class BagRecorder(Node):
                 raise common.ParameterError(reason, 'topics') from err
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        # read-only parameters never get here: rclpy refuses them first (their descriptors say so)
         for p in params:
-            if p.name in READ_ONLY:
-                return common.refuse(
-                    f'{p.name} is read-only while recording: restart {NODE_NAME} to change it'
-                )
             if p.name == 'discovery_period':
                 reason = check_period(p.value, DISCOVERY_RANGE)
             elif p.name == 'flush_period':
@@ -283,7 +284,7 @@ class BagRecorder(Node):
             self.get_logger().warning(f'not recording {topic}: {reason}')
 
     def _discover(self) -> None:
-        if self._closed:
+        if self._closed or self._writer.error is not None:
             return
         for topic, types in self.get_topic_names_and_types():
             if not self._wanted(topic) or topic in self._skipped:
@@ -306,7 +307,11 @@ class BagRecorder(Node):
             reliable, transient_local = matched_qos(profiles)
             if stats is None:
                 self._subscribe(topic, msgtype, profiles, reliable, transient_local)
-            elif (stats.reliable and not reliable) or (
+                if topic in self._stats:
+                    self._publisher_gids[topic] = {tuple(p.endpoint_gid) for p in pubs}
+                continue
+            self._note_publishers(topic, pubs)
+            if (stats.reliable and not reliable) or (
                 stats.transient_local and not transient_local
             ):
                 # a publisher with weaker QoS joined: a stricter subscription would not match it
@@ -317,6 +322,14 @@ class BagRecorder(Node):
                 )
                 self.destroy_subscription(self._recorded_subs.pop(topic))
                 self._subscribe(topic, msgtype, profiles, reliable, transient_local)
+
+    def _note_publishers(self, topic: str, pubs) -> None:
+        """Offered QoS of publishers that joined a recorded topic, for metadata.yaml."""
+        seen = self._publisher_gids.setdefault(topic, set())
+        new = [p for p in pubs if tuple(p.endpoint_gid) not in seen]
+        if new:
+            seen.update(tuple(p.endpoint_gid) for p in new)
+            self._writer.add_offered_qos(topic, [offered_qos(p.qos_profile) for p in new])
 
     def _subscribe(self, topic, msgtype, profiles, reliable: bool, transient_local: bool) -> None:
         if msgtype not in messages.TYPESTORE.types:
@@ -355,16 +368,14 @@ class BagRecorder(Node):
     def _on_message(self, topic: str, data: bytes) -> None:
         stats = self._stats[topic]
         stats.received += 1
-        if self._closed:
-            return
+        stats.bytes += len(data)
+        if self._closed or self._writer.error is not None:
+            return  # after a write failure: dropped, counted as received - written
         try:
             self._writer.write(topic, self.get_clock().now().nanoseconds, data)
-            stats.bytes += len(data)
         except WriterError as err:
             stats.errors += 1
-            self.get_logger().error(
-                f'cannot write a message of {topic}: {err}', throttle_duration_sec=5.0
-            )
+            self._write_failed(f'cannot write a message of {topic}: {err}')
 
     def _on_lost(self, topic: str, info) -> None:
         self._stats[topic].lost += int(info.total_count_change)
@@ -376,17 +387,29 @@ class BagRecorder(Node):
             self._writer.flush()
         except WriterError as err:
             self._flush_errors += 1
-            self.get_logger().error(f'cannot flush the bag: {err}', throttle_duration_sec=5.0)
+            self._write_failed(f'cannot flush the bag: {err}')
+
+    def _write_failed(self, text: str) -> None:
+        if self._writer.error is None:  # one message refused (not a failure of the file)
+            self.get_logger().error(text, throttle_duration_sec=5.0)
+            return
+        # the file failed (a full disk): the writer stopped for good and holds nothing any more
+        self.failed = f'cannot write bag {self.output}: {self._writer.error}'
+        self.get_logger().error(
+            f'{text}. Messages received from now on are dropped (counted in /diagnostics); stop '
+            f'the recorder, free space and run `cloe bag recover {self.output}`'
+        )
 
     def _diagnostics(self) -> messages.Status:
         """The recorder's DiagnosticStatus: counts per topic and in total."""
         values: list[tuple[str, str]] = []
+        dropped = self._dropped()
         for topic in sorted(self._stats):
             s = self._stats[topic]
             values += [
                 (f'{topic} received', str(s.received)),
                 (f'{topic} lost', str(s.lost)),
-                (f'{topic} write errors', str(s.errors)),
+                (f'{topic} dropped', str(dropped[topic])),
                 (f'{topic} bytes', str(s.bytes)),
             ]
         written = self._writer.message_count if self._writer else 0
@@ -395,17 +418,23 @@ class BagRecorder(Node):
         values += [
             ('messages', str(written)),
             ('lost', str(lost)),
+            ('dropped', str(sum(dropped.values()))),
             ('write errors', str(errors)),
             ('bytes', str(sum(s.bytes for s in self._stats.values()))),
-            ('flushes', str(self._writer.flush_count if self._writer else 0)),
+            ('chunks', str(self._writer.chunk_count if self._writer else 0)),
             ('skipped topics', str(len(self._skipped))),
         ]
+        if self.failed:
+            values.append(('failure', self.failed))
         if self._skipped:
             values.append(('skipped', '; '.join(f'{t}: {r}' for t, r in self._skipped.items())))
         missing = [t for t in self.topics if t not in self._stats and t not in self._skipped]
         if missing:
             values.append(('waiting for', ', '.join(missing)))
-        if errors:
+        if self.failed:
+            level = messages.ERROR
+            text = f'not writing: {self.failed}; {sum(dropped.values())} messages dropped'
+        elif errors:
             level, text = messages.ERROR, f'{errors} write errors'
         elif lost or self._skipped or missing:
             level, text = messages.WARN, f'recording {len(self._stats)} topics with warnings'
@@ -419,17 +448,28 @@ class BagRecorder(Node):
         stamp = self.get_clock().now().nanoseconds
         self._diag_pub.publish(messages.encode_diagnostics(stamp, [self._diagnostics()]))
 
+    def _dropped(self) -> dict[str, int]:
+        """Messages received but not in the bag, per topic: refused by the writer, or lost with
+        the file after a write failure."""
+        written = self._writer.topic_counts if self._writer else {}
+        return {t: max(s.received - written.get(t, 0), 0) for t, s in self._stats.items()}
+
     def summary(self) -> str:
-        """One line: messages per topic and lost messages."""
+        """One line: messages received, written, lost in DDS and dropped, per topic and in total.
+        After a write failure "written" counts the messages that reached the file before it."""
+        written = self._writer.topic_counts if self._writer else {}
+        dropped = self._dropped()
         parts = [
-            f'{t} {s.received} received/{self._writer.topic_counts.get(t, 0)} written'
+            f'{t} {s.received} received/{written.get(t, 0)} written'
             + (f'/{s.lost} lost' if s.lost else '')
-            + (f'/{s.errors} errors' if s.errors else '')
+            + (f'/{dropped[t]} dropped' if dropped[t] else '')
             for t, s in sorted(self._stats.items())
         ]
-        total = self._writer.message_count if self._writer else 0
+        total = sum(written.values())
         lost = sum(s.lost for s in self._stats.values())
-        return f'recorded {total} messages ({lost} lost) to {self.output}: ' + (
+        n_dropped = sum(dropped.values())
+        counts = f'{lost} lost' + (f', {n_dropped} dropped' if n_dropped else '')
+        return f'recorded {total} messages ({counts}) to {self.output}: ' + (
             ', '.join(parts) if parts else 'no topics'
         )
 
@@ -438,29 +478,42 @@ class BagRecorder(Node):
     def close(self) -> str | None:
         """Finish the bag (pending chunk, summary, metadata.yaml). Idempotent.
 
-        Returns the summary line (None if already closed) or raises :class:`WriterError`.
+        Returns the summary line (None if already closed). If the bag could not be finished
+        (a write failure before, or now), :attr:`failed` says why.
         """
         if self._closed or self._writer is None:
             return None
         self._closed = True
-        self._writer.close()
+        try:
+            self._writer.close()
+        except WriterError as err:
+            self.failed = str(err)
         return self.summary()
 
     def destroy_node(self) -> None:
         logger = self.get_logger()
-        try:
-            line, level = self.close(), 'info'
-        except WriterError as err:
-            line, level = str(err), 'error'
+        line = self.close()
         super().destroy_node()
         # logged once the node is gone: after SIGINT the context is shut down already and the
         # node's /rosout publisher could not take the line
+        if line and self.failed:
+            logger.error(self.failed)
         if line:
-            getattr(logger, level)(line)
+            logger.info(line)
 
 
 def main(args: list[str] | None = None) -> int:
-    return common.run_node(BagRecorder, args)
+    """Run the node; exit status 1 also when the bag could not be finished (:attr:`failed`)."""
+    nodes: list[BagRecorder] = []
+
+    def make() -> BagRecorder:
+        nodes.append(BagRecorder())
+        return nodes[-1]
+
+    status = common.run_node(make, args)
+    if status == 0 and nodes and nodes[0].failed:
+        status = 1
+    return status
 
 
 if __name__ == '__main__':

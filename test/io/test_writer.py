@@ -7,6 +7,9 @@ the file ends), a copy taken before ``flush()`` holds none of the pending chunk.
 
 from __future__ import annotations
 
+import errno
+import io
+import os
 import shutil
 from pathlib import Path
 
@@ -181,14 +184,14 @@ def test_flush_makes_written_messages_survive_a_kill(tmp_path: Path) -> None:
     before_flush = tmp_path / 'before.mcap'
     shutil.copy(bag / 'bag.mcap', before_flush)
     w.flush()
-    flush1 = w.flush_count
+    flush1 = w.chunk_count
     after_flush = tmp_path / 'after.mcap'
     shutil.copy(bag / 'bag.mcap', after_flush)
     for k in range(20, 30):
         w.write('/odom', 1000 + k, odometry(k))
     w.flush()
     w.flush()  # nothing pending: no empty chunk
-    assert (flush1, w.flush_count) == (1, 2)
+    assert (flush1, w.chunk_count) == (1, 2)
     after_second = tmp_path / 'second.mcap'
     shutil.copy(bag / 'bag.mcap', after_second)
     w.close()
@@ -235,3 +238,82 @@ def test_bad_compression_is_refused_before_creating_anything(tmp_path: Path) -> 
     with pytest.raises(WriterError, match='compression must be one of zstd, none'):
         BagWriter(tmp_path / 'b', 'lz4')
     assert not (tmp_path / 'b').exists()
+
+
+def test_every_chunk_written_is_counted(tmp_path: Path) -> None:
+    with BagWriter(tmp_path / 'b', 'none') as w:
+        w.add_topic('/odom', ODOMETRY)
+        for k in range(4):  # 1.2 MB: rosbags writes the chunk on reaching 1 MiB
+            w.write('/odom', k, bytes(300_000))
+        assert w.chunk_count == 1
+        w.write('/odom', 4, odometry(4))
+        w.flush()
+        assert w.chunk_count == 2
+    assert len(stream_messages(tmp_path / 'b' / 'b.mcap')) == 5
+
+
+class SmallDisk(io.FileIO):
+    """A file on a disk with ``room`` bytes: writes beyond fail with ENOSPC, as on a full disk
+    (a partial write first, then the error)."""
+
+    room = 1 << 40
+
+    def write(self, data) -> int:
+        free = self.room - self.tell()
+        if free <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return super().write(memoryview(data)[:free])
+
+
+def test_a_write_failure_stops_the_writer(tmp_path: Path, monkeypatch) -> None:
+    """A full disk: the writer stops at the first failed write, keeps nothing in memory, counts
+    the messages that reached the file, and close() says the bag is not finished."""
+    disk: list[SmallDisk] = []
+    path_open = Path.open
+
+    def small_disk_open(self, mode='r', *args, **kwargs):
+        if self.suffix != '.mcap':
+            return path_open(self, mode, *args, **kwargs)
+        disk.append(SmallDisk(self, mode.replace('b', '')))
+        return io.BufferedWriter(disk[-1])
+
+    monkeypatch.setattr(Path, 'open', small_disk_open)
+    bag = tmp_path / 'bag'
+    w = BagWriter(bag, 'none')
+    monkeypatch.undo()
+    w.add_topic('/odom', ODOMETRY, [QOS])
+    for k in range(20):
+        w.write('/odom', 1000 + k, odometry(k))
+    w.flush()
+    disk[0].room = disk[0].tell() + 1000  # the disk fills up
+    for k in range(20, 40):
+        w.write('/odom', 1000 + k, odometry(k))
+    with pytest.raises(WriterError, match='No space left on device'):
+        w.flush()
+    assert 'No space left on device' in w.error
+    assert (w.message_count, w.topic_counts) == (20, {'/odom': 20})  # what reached the file
+    assert disk[0].closed  # given up: later messages are refused, not buffered
+    for k in range(40, 50):
+        with pytest.raises(WriterError, match=r'failed already: .*No space left'):
+            w.write('/odom', 1000 + k, odometry(k))
+    w.flush()  # nothing to flush
+    with pytest.raises(WriterError, match=r'cannot finish bag .*No space left.*cloe bag recover'):
+        w.close()
+    assert w.closed and w.message_count == 20
+    w.close()  # idempotent
+    assert not (bag / 'metadata.yaml').exists()
+    got = stream_messages(bag / 'bag.mcap')
+    assert [(t, data) for _, t, data in got] == [(1000 + k, odometry(k)) for k in range(20)]
+
+
+def test_offered_qos_of_later_publishers_go_into_the_metadata(tmp_path: Path) -> None:
+    reliable = QOS._replace(reliability=QosReliability.RELIABLE)
+    with BagWriter(tmp_path / 'b') as w:
+        w.add_topic('/odom', ODOMETRY, [QOS])
+        w.write('/odom', 1, odometry(1))
+        w.add_offered_qos('/odom', [QOS, reliable])  # QOS is there already
+        with pytest.raises(WriterError, match='add_topic'):
+            w.add_offered_qos('/other', [QOS])
+    with AnyReader([tmp_path / 'b']) as reader:
+        (conn,) = reader.connections
+        assert conn.ext.offered_qos_profiles == [QOS, reliable]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import resource
 import signal
 import struct
 import time
@@ -257,12 +258,14 @@ def test_signal_gives_a_complete_bag(ros, tmp_path: Path, sig: int) -> None:
         rec.stop(signal.SIGKILL)
     assert status == 0, logs(rec)
     out = logs(rec)
-    assert 'recorded' in out and '/odom 200 received/200 written' in out, out
+    assert 'recorded' in out and '/odom 200 received/200 written,' in out, out
+    # the documented order: where to, then the topics (its own /diagnostics is there at once)
+    assert out.index('recording to ') < out.index('recording /diagnostics ('), out
     assert diag.names == {f'bag_recorder: {tmp_path / "bag"}'}
-    for key in ('/odom lost', '/odom write errors', '/odom bytes', 'bytes', 'flushes', 'lost'):
+    for key in ('/odom lost', '/odom dropped', '/odom bytes', 'bytes', 'chunks', 'dropped'):
         assert key in diag.values
-    assert diag.count('/odom lost') == 0 and diag.count('/odom write errors') == 0
-    assert diag.count('flushes') >= 2  # 2 s of publishing, a flush every 0.5 s
+    assert diag.count('/odom lost') == 0 and diag.count('/odom dropped') == 0
+    assert diag.count('chunks') >= 2  # 2 s of publishing, a flush every 0.5 s
     assert_complete_bag(tmp_path / 'bag', n, 20, t0_ns, t1_ns)
 
 
@@ -404,6 +407,55 @@ def test_messages_lost_in_dds_are_counted(ros, tmp_path: Path) -> None:
         assert {c.topic: c.msgcount for c in reader.connections} == {'/odom': written}
 
 
+def test_a_full_disk_ends_with_status_1_and_what_was_written(ros, tmp_path: Path) -> None:
+    """The recorder's files may grow to 40 kB (RLIMIT_FSIZE: writes beyond fail as on a full
+    disk). It stops writing at the first failure, keeps counting, reports ERROR, and SIGINT ends it
+    with status 1 and a summary whose written messages are those `cloe bag recover` gets back."""
+    odom_pub = ros.node.create_publisher(Odometry, '/odom', qos(depth=1000))
+    diag = Diagnostics(ros.node)
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (40_000, limit[1]))  # inherited by the recorder
+    try:
+        rec = start_recorder(ros, tmp_path, topics=['/odom'], compression='none')
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limit)
+    failed_at = []
+
+    def after_failure(k: int) -> bool:
+        if not failed_at and 'nothing more is written' in rec.output():
+            failed_at.append(k)
+        return bool(failed_at) and k >= failed_at[0] + 20
+
+    try:
+        wait_matched(ros, odom_pub)
+        publish(odom_pub, None, 1000, after_failure)  # ~750 B each: 40 kB in 0.6 s
+        assert failed_at, logs(rec)
+        assert odom_pub.wait_for_all_acked(Duration(seconds=5))
+        n = failed_at[0] + 21
+        assert spin_until(
+            ros.executor, lambda: diag.count('/odom received') == n and 'failure' in diag.values, 5
+        ), diag.values
+        status = rec.stop(signal.SIGINT)
+    finally:
+        rec.stop(signal.SIGKILL)
+    out = logs(rec)
+    assert status == 1, out
+    assert 'File too large' in diag.values['failure']
+    assert diag.count('dropped') >= 20 and diag.count('write errors') >= 1
+    assert re.search(r'cannot finish bag .*File too large; try `cloe bag recover', out), out
+    m = re.search(rf'recorded (\d+) messages \(0 lost, (\d+) dropped\) to .*: /odom {n} received/'
+                  r'(\d+) written/(\d+) dropped$', out, re.M)  # fmt: skip
+    assert m, out
+    written, dropped = int(m[1]), int(m[2])
+    assert m[3] == m[1] and m[4] == m[2] and written + dropped == n and dropped >= 20
+    assert not (tmp_path / 'bag' / 'metadata.yaml').exists()
+    assert cloe(['bag', 'recover', str(tmp_path / 'bag')]) == 0
+    got = read_with_mcap(tmp_path / 'bag_recovered' / 'bag_recovered.mcap')
+    recovered = [odom_seq(m) for _, _, m in got['/odom']]
+    # written = surely in the file; recover may find a few more in the chunk cut by the failure
+    assert recovered == list(range(len(recovered))) and written <= len(recovered) < n
+
+
 @pytest.mark.parametrize(
     ('params', 'reason'),
     [
@@ -502,8 +554,6 @@ def test_runtime_parameter_sets_are_validated(ros, recorder) -> None:
     result = set_one('discovery_period', 1.0)
     assert result.successful and node._discovery_timer.timer_period_ns == 1_000_000_000
     # the node's own callback refuses what the descriptors would let through
-    own = node._on_set_parameters([Parameter('output', value='x')])
-    assert not own.successful and 'read-only' in own.reason
     own = node._on_set_parameters([Parameter('discovery_period', value=20.0)])
     assert not own.successful and 'discovery_period must be in [0.05, 10.0] s' in own.reason
 
@@ -513,6 +563,7 @@ def test_invalid_overrides_raise_parameter_error(ros, tmp_path: Path) -> None:
         ({'flush_period': 1.5}, 'flush_period'),
         ({'compression': 'gzip'}, 'compression'),
         ({'output': ''}, 'output'),
+        ({'output': None}, "parameter 'output': must name a bag directory"),  # -p "output:=  "
         ({'qos_depth': 'deep'}, 'qos_depth'),
     ):
         params = {'output': str(tmp_path / 'never'), **overrides}
@@ -563,8 +614,8 @@ def _check_sim_time_and_skip(ros, recorder, tmp_path, clock_pub, odom_pub, dual_
         odom_pub.publish(odometry(k))
     assert spin_until(ros.executor, lambda: node._writer.topic_counts.get('/odom') == 5, 10)
     # the sim clock stands still; flushing (steady clock) goes on: the messages reach the file
-    flushes = node._writer.flush_count
-    assert spin_until(ros.executor, lambda: node._writer.flush_count > flushes, timeout=5)
+    flushes = node._writer.chunk_count
+    assert spin_until(ros.executor, lambda: node._writer.chunk_count > flushes, timeout=5)
     on_disk, _ = stream_read(tmp_path / 'bag' / 'bag.mcap')
     assert [odom_seq(decode(name, data)) for name, data in on_disk['/odom']] == list(range(5))
     assert '/dual' in node._skipped and 'several types' in node._skipped['/dual']
@@ -577,6 +628,20 @@ def _check_sim_time_and_skip(ros, recorder, tmp_path, clock_pub, odom_pub, dual_
     got = read_with_mcap(tmp_path / 'bag' / 'bag.mcap')
     assert [(t, odom_seq(m)) for t, _, m in got['/odom']] == [(sim_ns, k) for k in range(5)]
     assert '/dual' not in got
+
+
+def test_offered_qos_of_every_publisher_is_stored(ros, recorder, tmp_path: Path) -> None:
+    reliable_pub = ros.node.create_publisher(Odometry, '/q', qos(reliable=True, depth=10))
+    node = recorder(topics=['/q'])
+    assert spin_until(ros.executor, lambda: reliable_pub.get_subscription_count() >= 1, 10)
+    best_effort_pub = ros.node.create_publisher(Odometry, '/q', qos(reliable=False, depth=10))
+    assert spin_until(ros.executor, lambda: best_effort_pub.get_subscription_count() >= 1, 10)
+    assert not node._stats['/q'].reliable  # resubscribed to match both
+    node.close()
+    with AnyReader([tmp_path / 'bag']) as reader:
+        (conn,) = reader.connections
+        offered = [q.reliability for q in conn.ext.offered_qos_profiles]
+    assert offered == [QosReliability.RELIABLE, QosReliability.BEST_EFFORT]
 
 
 def test_qos_matching_rule() -> None:

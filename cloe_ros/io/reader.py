@@ -6,6 +6,10 @@ while reading) into a :class:`BagError` whose message names the path, says what 
 where there is one, what to do about it. Messages come out as raw CDR bytes in log-time order;
 decoding is :mod:`cloe_ros.io.messages`' job. No rclpy here.
 
+Damage that leaves the records readable is found too: the chunks of an MCAP file are checked
+against the message index the file holds after each of them (rosbags writes no chunk CRC), and at
+the end the messages read are compared with the per-topic counts the bag lists.
+
 A single ``.mcap`` file (no metadata.yaml) is read directly: rosbags takes topics, counts and times
 from the file's own summary. sqlite3 (``.db3``) bags work too, because rosbags reads them.
 """
@@ -13,15 +17,16 @@ from the file's own summary. sqlite3 (``.db3``) bags work too, because rosbags r
 from __future__ import annotations
 
 import heapq
+import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import yaml
 from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.rosbag2.reader import DirectoryReader
-from rosbags.rosbag2.storage_mcap import McapReader, msgsrc
+from rosbags.rosbag2.storage_mcap import McapReader, decompress, read_exact
 
 from cloe_ros.errors import CloeError
 
@@ -215,10 +220,34 @@ class BagReader:
         ):
             # a file-compressed bag is read from temporary copies: name the bag, not them
             named = reader.compression_mode != 'file'
-            for part in parts:
-                yield from self._mcap_chunk_messages(part, wanted, part.path if named else None)
+            source = (
+                item
+                for part in parts
+                for item in self._mcap_chunk_messages(part, wanted, part.path if named else None)
+            )
         else:
-            yield from self._guarded(reader, wanted)
+            source = self._guarded(reader, wanted)
+        counts = dict.fromkeys(wanted, 0)
+        for item in source:
+            counts[item[0]] += 1
+            yield item
+        self._check_counts(counts)
+
+    def _check_counts(self, counts: dict[str, int]) -> None:
+        """Every message the bag lists was read: damage that leaves the records readable (a
+        message whose header was overwritten, say) drops messages without an error on the way."""
+        short = {t: n for t, n in sorted(counts.items()) if n < self.topics[t].count}
+        if not short:
+            return
+        where = 'its summary' if self.path.is_file() else 'metadata.yaml'
+        missing = sum(self.topics[t].count - n for t, n in short.items())
+        detail = ', '.join(f'{t} {n} of {self.topics[t].count}' for t, n in short.items())
+        msg = (
+            f'{self.path}: {missing} of the messages {where} lists could not be read ({detail} '
+            'read): the bag is damaged. `cloe bag recover` writes a bag with every message that '
+            'can still be read.'
+        )
+        raise BagError(msg)
 
     def _guarded(self, reader: Reader, wanted: set[str]) -> Iterator[tuple[str, int, bytes]]:
         """rosbags' own iteration, errors translated (sqlite3, unindexed MCAP, compression)."""
@@ -243,28 +272,57 @@ class BagReader:
     def _mcap_chunk_messages(
         self, part: McapReader, wanted: set[str], file: Path | None
     ) -> Iterator[tuple[str, int, bytes]]:
-        """Merge the chunks of an indexed MCAP file by log time, as rosbags does, but with each
-        chunk's reading guarded so an error names the chunk."""
+        """Merge the chunks of an indexed MCAP file by log time (ties: file order), as rosbags
+        does, but with each chunk read and checked here, so that damage names the chunk. When a
+        chunk cannot be read, every message that comes before its start in that order is still
+        delivered, then the error is raised."""
         channel_map: dict[int, Connection] = {
             c.id: c for c in part.connections if c.topic in wanted
         }
-        sources = [
-            self._guarded_chunk(part, chunk, channel_map, file or self.path)
+        chunks = [
+            chunk
             for chunk in part.chunks
             if any(chunk.channel_count.get(cid, 0) for cid in channel_map)
         ]
-        for log_ns, offset, conn, raw in heapq.merge(*sources):
-            if offset and conn is not None and raw is not None:  # offset 0: start marker
+        # (log time, chunk offset, chunk, sequence in the chunk (-1: its start), connection, raw)
+        heap: list[tuple] = [
+            (c.message_start_time, c.chunk_start_offset, i, -1, None, None)
+            for i, c in enumerate(chunks)
+        ]
+        heapq.heapify(heap)
+        pending: dict[int, Iterator[tuple[int, tuple[int, Connection, bytes]]]] = {}
+        error: BagError | None = None
+        limit: tuple[int, int] | None = None  # the start of the earliest chunk that failed
+        while heap and (limit is None or heap[0][:2] < limit):
+            log_ns, offset, i, seq, conn, raw = heapq.heappop(heap)
+            if seq < 0:
+                try:
+                    pending[i] = enumerate(
+                        self._chunk(part, chunks[i], channel_map, file or self.path)
+                    )
+                except BagError as err:
+                    if limit is None or (log_ns, offset) < limit:
+                        limit, error = (log_ns, offset), err
+                    continue
+            else:
                 yield conn.topic, log_ns, raw
+            nxt = next(pending[i], None)
+            if nxt is None:
+                del pending[i]
+            else:
+                seq, (log_ns, conn, raw) = nxt
+                heapq.heappush(heap, (log_ns, offset, i, seq, conn, raw))
+        if error is not None:
+            raise error
 
-    def _guarded_chunk(
+    def _chunk(
         self, part: McapReader, chunk: Any, channel_map: dict[int, Connection], file: Path
-    ) -> Iterator[Any]:
+    ) -> list[tuple[int, Connection, bytes]]:
+        """The wanted messages of one chunk in log-time order; :class:`BagError` naming the chunk
+        if it is damaged."""
         try:
             assert part.bio is not None
-            yield from msgsrc(
-                chunk, channel_map, chunk.message_start_time, chunk.message_end_time + 1, part.bio
-            )
+            return _read_chunk(part.bio, chunk, channel_map)
         except Exception as err:  # damaged chunk
             topics = sorted(
                 {channel_map[cid].topic for cid in chunk.channel_count if cid in channel_map}
@@ -280,6 +338,84 @@ class BagReader:
             raise BagError(msg) from err
 
 
+# -- MCAP chunks ---------------------------------------------------------------------------------
+
+_RECORD_HEAD = struct.Struct('<BQ')
+_MESSAGE_HEAD = struct.Struct('<HIQQ')  # channel id, sequence, log time, publish time
+_INDEX_ENTRY = struct.Struct('<QQ')  # log time, offset
+
+
+class _Damage(ValueError):
+    """Chunk data that contradict themselves or the file's index (internal)."""
+
+
+def _read_chunk(
+    bio: BinaryIO, chunk: Any, channel_map: dict[int, Connection]
+) -> list[tuple[int, Connection, bytes]]:
+    """The messages of ``chunk`` whose channel is in ``channel_map``, as ``(log time, connection,
+    raw)`` in log-time order (recorded order for equal times). Besides rosbags' size and CRC
+    checks, every record must parse, every message must lie in the chunk's time range, and the
+    messages must be those the file's message index lists (rosbags writes no chunk CRC)."""
+    bio.seek(chunk.chunk_start_offset + 9 + 24)
+    (crc,) = struct.unpack('<I', read_exact(bio, 4))
+    bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
+    compressed = read_exact(bio, chunk.compressed_size)
+    data = decompress(compressed, chunk.compression, chunk.uncompressed_size, crc)
+    view = memoryview(data)
+    found: set[tuple[int, int, int]] = set()
+    out: list[tuple[int, Connection, bytes]] = []
+    pos = 0
+    while pos < len(view):
+        if pos + _RECORD_HEAD.size > len(view):
+            raise _Damage(f'The chunk ends inside a record header (at {pos}).')
+        op, length = _RECORD_HEAD.unpack_from(view, pos)
+        start = pos + _RECORD_HEAD.size
+        if not (0x01 <= op <= 0x0F or op >= 0x80):
+            raise _Damage(f'Invalid record opcode 0x{op:02x} at {pos} inside the chunk.')
+        if length > len(view) - start:
+            raise _Damage(f'The record at {pos} inside the chunk overruns it.')
+        if op == 0x05:
+            if length < _MESSAGE_HEAD.size:
+                raise _Damage(f'The message record at {pos} is shorter than its header.')
+            cid, _, log_ns, _ = _MESSAGE_HEAD.unpack_from(view, start)
+            if not chunk.message_start_time <= log_ns <= chunk.message_end_time:
+                msg = f"A message logged at {log_ns} ns lies outside the chunk's time range."
+                raise _Damage(msg)
+            found.add((cid, log_ns, pos))
+            conn = channel_map.get(cid)
+            if conn is not None:
+                out.append(
+                    (log_ns, conn, bytes(view[start + _MESSAGE_HEAD.size : start + length]))
+                )
+        pos = start + length
+    if not crc:  # a matching CRC vouches for the data; without one the index is the check
+        indexed = _chunk_index(bio, chunk)
+        if found != indexed:
+            msg = (
+                f'Its messages differ from the message index: {len(indexed - found)} of '
+                f'{len(indexed)} indexed messages not found, {len(found - indexed)} not indexed.'
+            )
+            raise _Damage(msg)
+    out.sort(key=lambda m: m[0])
+    return out
+
+
+def _chunk_index(bio: BinaryIO, chunk: Any) -> set[tuple[int, int, int]]:
+    """``(channel, log time, offset)`` of every message the chunk's message index records list."""
+    out: set[tuple[int, int, int]] = set()
+    for cid, offset in chunk.message_index_offsets.items():
+        bio.seek(offset)
+        op, length = _RECORD_HEAD.unpack(read_exact(bio, _RECORD_HEAD.size))
+        body = read_exact(bio, length) if op == 0x07 and length >= 6 else b''
+        if not body or struct.unpack_from('<H', body)[0] != cid:
+            raise _Damage(f'The message index record of channel {cid} is damaged.')
+        (size,) = struct.unpack_from('<I', body, 2)
+        if size % _INDEX_ENTRY.size or 6 + size > len(body):
+            raise _Damage(f'The message index record of channel {cid} is damaged.')
+        out.update((cid, t, o) for t, o in _INDEX_ENTRY.iter_unpack(body[6 : 6 + size]))
+    return out
+
+
 # -- helpers -----------------------------------------------------------------------------------
 
 
@@ -290,6 +426,14 @@ def _text(err: BaseException) -> str:
 
 def _no_metadata_message(path: Path) -> str:
     storage_files = sorted(p.name for p in path.iterdir() if p.suffix in {'.mcap', '.db3'})
+    complete = [n for n in storage_files if n.endswith('.mcap') and _has_footer(path / n)]
+    if complete and len(complete) == len(storage_files):
+        files = ' or '.join(str(path / n) for n in complete)
+        return (
+            f'{path} has no metadata.yaml but holds {", ".join(storage_files)}, which ends with '
+            f'its MCAP footer (complete): pass the .mcap file itself ({files}), or run '
+            f'`cloe bag recover {path}` to rebuild the bag around it.'
+        )
     if storage_files:
         return (
             f'{path} has no metadata.yaml but holds {", ".join(storage_files)}: the recording '
@@ -416,6 +560,12 @@ def _check_mcap_file(file: Path, bag: Path) -> None:
     if size == 0:
         msg = f'{file} is empty: nothing was recorded; remove the bag {bag}'
         raise BagError(msg)
+    if head == MCAP_MAGIC and size < len(MCAP_MAGIC) + 9:
+        msg = (
+            f'{file} holds the MCAP magic bytes and no record ({size} bytes): nothing was '
+            f'recorded; remove the bag {bag}'
+        )
+        raise BagError(msg)
     if head != MCAP_MAGIC:
         msg = f'{file} is not an MCAP file (it does not start with the MCAP magic bytes)'
         raise BagError(msg)
@@ -426,6 +576,27 @@ def _check_mcap_file(file: Path, bag: Path) -> None:
             f'`cloe bag recover {bag}` to rescue the complete messages.'
         )
         raise BagError(msg)
+
+
+def _has_footer(file: Path) -> bool:
+    """Whether an .mcap file has the MCAP magic at both ends (its recording was closed)."""
+    try:
+        size = file.stat().st_size
+        if size < len(MCAP_MAGIC) + MCAP_FOOTER_SIZE:
+            return False
+        with file.open('rb') as fh:
+            head = fh.read(len(MCAP_MAGIC))
+            fh.seek(size - len(MCAP_MAGIC))
+            return head == MCAP_MAGIC == fh.read(len(MCAP_MAGIC))
+    except OSError:
+        return False
+
+
+def check_bag(path: str | Path) -> None:
+    """Everything about a bag that can be checked without reading it (what :meth:`BagReader.open`
+    checks first: the path, metadata.yaml, the storage files' MCAP magic at both ends); raises
+    :class:`BagError` saying what is wrong and what to do."""
+    BagReader(path)._check_layout()
 
 
 def _qos_text(stored: Any) -> str:

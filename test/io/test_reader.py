@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -35,6 +36,7 @@ from cloe_ros.io.messages import (
     encode_pose_stamped,
 )
 from cloe_ros.io.reader import BagError, BagReader, TopicInfo, qos_profiles
+from cloe_ros.io.writer import BagWriter
 
 FLIGHTS = Path('/work/shared/data/flights')
 REAL = {
@@ -267,11 +269,25 @@ def test_folder_of_bags(tmp_path):
 
 
 def test_metadata_deleted(tmp_path):
-    write_bag(tmp_path / 'bag', n_odom=10)
+    """A complete .mcap without metadata.yaml: it can be read as a file, and the error says so."""
+    expected = write_bag(tmp_path / 'bag', n_odom=10)
     (tmp_path / 'bag' / 'metadata.yaml').unlink()
     text = error_of(tmp_path / 'bag')
     assert 'has no metadata.yaml but holds bag.mcap' in text
+    assert f'pass the .mcap file itself ({tmp_path / "bag" / "bag.mcap"})' in text
     assert f'cloe bag recover {tmp_path / "bag"}' in text
+    with BagReader(tmp_path / 'bag' / 'bag.mcap') as bag:
+        assert len(list(bag.messages())) == len(expected)
+
+
+def test_mcap_of_magic_bytes_only(tmp_path):
+    write_bag(tmp_path / 'bag', n_odom=10)
+    mcap = tmp_path / 'bag' / 'bag.mcap'
+    mcap.write_bytes(mcap.read_bytes()[:8])
+    assert error_of(tmp_path / 'bag') == (
+        f'{mcap} holds the MCAP magic bytes and no record (8 bytes): nothing was recorded; '
+        f'remove the bag {tmp_path / "bag"}'
+    )
 
 
 def test_metadata_unreadable(tmp_path):
@@ -506,6 +522,87 @@ def test_chunk_undecompressable(tmp_path):
     assert text.startswith(f'{mcap}: corrupt chunk at byte offset {offsets[0]} (messages of ')
     assert 'The file is damaged' in text
     assert got == []
+
+
+def message_records(data: bytes, start: int, end: int) -> list[int]:
+    """Offsets of the message records between ``start`` and ``end`` of uncompressed records."""
+    out, pos = [], start
+    while pos < end:
+        op, length = struct.unpack_from('<BQ', data, pos)
+        if op == 0x05:
+            out.append(pos)
+        pos += 9 + length
+    return out
+
+
+def test_chunk_whose_messages_differ_from_its_index(tmp_path):
+    """A message's log time overwritten by another one of the same chunk: every record still
+    parses and lies in the chunk's time range, but the message index after the chunk disagrees
+    (rosbags writes no chunk CRC). Delivered silently with a wrong time before."""
+    expected = write_bag(tmp_path / 'bag')
+    mcap = tmp_path / 'bag' / 'bag.mcap'
+    with open(mcap, 'rb') as fh:
+        chunk = sorted(
+            make_reader(fh).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset
+        )[1]
+    data = bytearray(mcap.read_bytes())
+    records = chunk.chunk_start_offset + 9 + 40  # uncompressed: no compression name
+    first, *others = message_records(data, records, chunk.chunk_start_offset + chunk.chunk_length)
+
+    def log_time(at: int) -> bytes:  # after opcode, length, channel id, sequence
+        return bytes(data[at + 15 : at + 23])
+
+    second = next(at for at in others if log_time(at) != log_time(first))
+    data[second + 15 : second + 23] = log_time(first)
+    mcap.write_bytes(bytes(data))
+    got, text = read_until_error(tmp_path / 'bag')
+    assert text.startswith(f'{mcap}: corrupt chunk at byte offset {chunk.chunk_start_offset} (')
+    assert 'differ from the message index' in text
+    assert [(t, s) for t, s, _ in got] == [(t, s) for t, s, _ in expected[: len(got)]]
+    assert len(got) >= sum(s < chunk.message_start_time for _, s, _ in expected)
+
+
+def test_fewer_messages_than_the_metadata_lists(tmp_path):
+    """Messages the storage does not give although metadata.yaml lists them: an error at the
+    end, naming the topics, instead of a bag that silently plays short."""
+    expected = write_bag(tmp_path / 'bag', n_odom=20)
+
+    def more(meta):
+        meta['topics_with_message_count'][0]['message_count'] += 2
+        meta['message_count'] += 2
+
+    edit_metadata(tmp_path / 'bag', more)
+    got, text = read_until_error(tmp_path / 'bag')
+    assert len(got) == len(expected)
+    assert text == (
+        f'{tmp_path / "bag"}: 2 of the messages metadata.yaml lists could not be read (/odom 20 '
+        'of 22 read): the bag is damaged. `cloe bag recover` writes a bag with every message '
+        'that can still be read.'
+    )
+
+
+def test_messages_before_a_damaged_chunk_sharing_its_start_time(tmp_path):
+    """The last message of a good chunk has the log time the next, damaged chunk starts with:
+    it is delivered before the error (the merge by log time held it back, waiting for the
+    damaged chunk)."""
+    bag = tmp_path / 'bag'
+    with BagWriter(bag, compression='none') as writer:
+        writer.add_topic('/odom', ODOMETRY)
+        for i in range(100):
+            writer.write('/odom', T0 + i * ODOM_DT, _odom(i, T0 + i * ODOM_DT))
+        writer.flush()  # closes the first chunk
+        for i in range(99, 200):  # the second chunk starts at the first one's last log time
+            writer.write('/odom', T0 + i * ODOM_DT, _odom(1000 + i, T0 + i * ODOM_DT))
+    mcap = next(bag.glob('*.mcap'))
+    offsets = sorted(chunk_offsets(mcap))
+    assert len(offsets) == 2
+    data = bytearray(mcap.read_bytes())
+    crc_at = offsets[1] + 1 + 8 + 24
+    data[crc_at : crc_at + 4] = (12345).to_bytes(4, 'little')
+    mcap.write_bytes(bytes(data))
+    got, text = read_until_error(bag)
+    assert f'corrupt chunk at byte offset {offsets[1]}' in text
+    assert [decode_odometry(raw).position[0] for _, _, raw in got] == list(range(100))
 
 
 def test_corrupt_unindexed_message_compressed(tmp_path):

@@ -1,19 +1,20 @@
 """``cloe bag``: look into bags and recover the ones whose recorder died.
 
-* ``cloe bag info BAG`` — topics, types, message counts, duration, start and end (log time).
+* ``cloe bag info BAG`` — topics, types, message counts, duration, start and end (log time);
+  the data are read through to check them, and a damaged bag ends with status 1.
 * ``cloe bag recover BAG [-o OUT]`` — a complete bag from an ``.mcap`` without summary/footer
-  (recorder killed, power lost): every message fully on disk, written to ``<BAG>_recovered``.
+  (recorder killed, power lost) or with damaged records: every message fully on disk and intact,
+  written to ``<BAG>_recovered``.
 """
 
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
 from cloe_ros.cli.errors import CliError
 from cloe_ros.io.reader import BagError, BagReader
-from cloe_ros.io.recover import BagInfo, RecoveryReport, TopicSummary, bag_info, recover_bag
+from cloe_ros.io.recover import BagInfo, TopicSummary, bag_info, mcap_damage, recover_bag
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -38,8 +39,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         'recover',
         help='rebuild a complete bag from an incomplete .mcap (recorder killed)',
         description=(
-            'Read the .mcap file(s) of BAG record by record, stop at the first truncated or '
-            'corrupt record, and write every message that was fully on disk into a new, complete '
+            'Read the .mcap file(s) of BAG record by record, step over damaged records where '
+            'readable records follow (stop where none do: a cut, zero-filled or garbage end), '
+            'and write every message that was fully on disk and intact into a new, complete '
             'bag (metadata.yaml, MCAP summary). BAG is never modified.'
         ),
     )
@@ -70,8 +72,9 @@ def mcap_file_info(path: Path) -> BagInfo:
                 for name, info in reader.topics.items()
             )
             storage = 'mcap, a single file without metadata.yaml'
+            damage = mcap_damage([path], {t.topic: t.count for t in topics})
             return BagInfo(path, (path.name,), storage, topics, reader.message_count,
-                           reader.start_ns, reader.end_ns)  # fmt: skip
+                           reader.start_ns, reader.end_ns, tuple(damage))  # fmt: skip
     except BagError as err:
         raise CliError(str(err)) from err
 
@@ -90,27 +93,16 @@ def run_info(args: argparse.Namespace) -> int:
         info = bag_info(bag)
     for line in info.lines():
         print(line)
-    return 0
-
-
-def recovery_lines(report: RecoveryReport) -> list[str]:
-    """``report.lines()``, except for a file whose last chunk is cut off: the messages taken from
-    that chunk lie past ``end`` (where the last complete record ends), so ``end`` is not the
-    number of usable bytes there."""
-    lines = report.lines()
-    for i, f in enumerate(report.files):
-        if f.complete or not f.partial_chunk_messages:
-            continue
-        reason = re.sub(r' \(offset \d+ of \d+ bytes\)$', '', f.reason)
-        lines[i] = (
-            f'{f.path}: incomplete ({f.size} bytes), complete records up to byte {f.end}, then a '
-            f'chunk cut off by the end of the file: {reason}; {f.messages} messages read'
+    if info.damage:
+        raise CliError(
+            f'{bag} is damaged (see "damaged:" above): `cloe bag recover {bag}` writes a bag with '
+            'every message that can still be read'
         )
-    return lines
+    return 0
 
 
 def run_recover(args: argparse.Namespace) -> int:
     report = recover_bag(args.bag, args.output, compression=args.compression)
-    for line in recovery_lines(report):
+    for line in report.lines():
         print(line)
     return 0

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zstandard
 from mcap.reader import make_reader
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapLibWriter
@@ -177,7 +178,12 @@ def test_recovered_bag_is_complete_for_many_cuts(tmp_path: Path, compression: st
         src = tmp_path / f'src{i}'
         src.mkdir()
         (src / 'src.mcap').write_bytes(content[:offset])
-        _, expected = scan(src / 'src.mcap')
+        s, expected = scan(src / 'src.mcap')
+        if not s.channels:  # not even a topic: an error, and no output
+            with pytest.raises(RecoverError, match='nothing to recover'):
+                recover_bag(src, compression=compression)
+            assert not (tmp_path / f'src{i}_recovered').exists()
+            continue
         report = recover_bag(src, compression=compression)
         assert report.output == tmp_path / f'src{i}_recovered'
         assert report.message_count == len(expected)
@@ -221,22 +227,180 @@ def test_zero_filled_and_garbage_tails_stop_cleanly(tmp_path: Path) -> None:
         assert not s.complete
 
 
-def test_corrupt_chunk_stops_the_scan_there(tmp_path: Path) -> None:
-    complete, unfinished, written = write_flushed_bag(tmp_path / 'bag', 'none')
-    content = bytearray(unfinished.read_bytes())
-    with complete.open('rb') as fh:
-        chunks = sorted(
-            make_reader(fh).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset
+def chunk_starts(mcap_file: Path) -> list[int]:
+    """Start offsets of the chunks, from mcap's own reader."""
+    with mcap_file.open('rb') as fh:
+        summary = make_reader(fh).get_summary()
+    return sorted(c.chunk_start_offset for c in summary.chunk_indexes)
+
+
+def read_back(bag: Path) -> list[tuple[str, int, bytes]]:
+    """The messages of a bag as mcap's own reader gives them, in file order."""
+    with next(bag.glob('*.mcap')).open('rb') as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        return [(c.topic, m.log_time, m.data) for _, c, m in reader.iter_messages()]
+
+
+@pytest.mark.parametrize('compression', ['none', 'zstd'])
+def test_a_damaged_chunk_header_is_stepped_over(tmp_path: Path, compression: str) -> None:
+    """Bytes flipped in the header of the third chunk (compression name and data length). The
+    chunk's record length still leads to the message index after it: the chunk is reported and
+    stepped over, every other chunk read. With the summary (a complete file) the chunk itself is
+    read with the summary's chunk index instead of its header."""
+    complete, unfinished, written = write_flushed_bag(tmp_path / 'bag', compression)
+    third = chunk_starts(complete)[2]
+    lost = set(range(2 * FLUSH_EVERY, 3 * FLUSH_EVERY))
+    for source, kept in ((unfinished, False), (complete, True)):
+        content = bytearray(source.read_bytes())
+        flip = third + 9 + 28  # opcode, length; start, end, uncompressed size, crc
+        n = 4 + len(compression.replace('none', '')) + 8  # name length, name, data length
+        content[flip : flip + n] = bytes(b ^ 0xFF for b in content[flip : flip + n])
+        src = tmp_path / f'src_{kept}'
+        src.mkdir()
+        (src / 'src.mcap').write_bytes(bytes(content))
+        s, got = scan(src / 'src.mcap')
+        want = written if kept else [m for k, m in enumerate(written) if k not in lost]
+        assert got == want
+        assert s.complete == kept
+        (skip,) = s.skipped
+        assert (skip.offset, skip.what) == (third, 'Chunk')
+        assert skip.length == chunk_ends(complete)[2] - third
+        assert (skip.kept, skip.lost) == ((FLUSH_EVERY, 0) if kept else (0, FLUSH_EVERY))
+        report = recover_bag(src)
+        assert report.damaged and report.message_count == len(want)
+        assert read_back(report.output) == want
+        assert f'damaged Chunk at byte {third} ({skip.length} bytes): corrupt Chunk' in (
+            '\n'.join(report.lines())
         )
-    # the uncompressed-size field of the third chunk: opcode, length, start, end -> offset 25
-    third = chunks[2].chunk_start_offset
-    struct.pack_into('<Q', content, third + 25, 12345)
-    bad = tmp_path / 'bad.mcap'
-    bad.write_bytes(bytes(content))
-    s, got = scan(bad)
-    assert got == written[: 2 * FLUSH_EVERY]
-    assert 'corrupt Chunk record' in s.reason and f'offset {third}' in s.reason
-    assert s.end == third
+
+
+def test_damaged_records_inside_an_uncompressed_chunk(tmp_path: Path) -> None:
+    """Uncompressed chunks are the bytes on disk: a damaged message record costs that message
+    only, the others are found where the message index after the chunk puts them. A message
+    moved to another channel (the records still parse) contradicts the index: found too."""
+    _, unfinished, written = write_flushed_bag(tmp_path / 'bag', 'none')
+    content = unfinished.read_bytes()
+    channel_ids = {'/reference': 1, '/odom': 2}
+    ends = message_record_ends(content, written, channel_ids)
+    starts = [end - 31 - len(data) for end, (_, _, data) in zip(ends, written)]
+    assert all(content[at] == 0x05 for at in starts)
+    opcode = bytearray(content)
+    opcode[starts[9]] = 0  # the second message of the third chunk: no record any more
+    channel = bytearray(content)
+    assert written[5][0] == '/reference'
+    struct.pack_into('<H', channel, starts[5] + 9, channel_ids['/odom'])
+    for damaged, k in ((opcode, 9), (channel, 5)):
+        s, got = scan(bytes(damaged))
+        assert got == written[:k] + written[k + 1 :]
+        (skip,) = s.skipped
+        assert (skip.kept, skip.lost) == (FLUSH_EVERY - 1, 1)
+        assert skip.offset == max(c for c in chunk_starts_of(content) if c < starts[k])
+
+
+def chunk_starts_of(content: bytes) -> list[int]:
+    """Chunk offsets of an MCAP file without summary, walking its top-level records."""
+    out, pos = [], 8
+    while pos + 9 <= len(content):
+        op, length = struct.unpack_from('<BQ', content, pos)
+        if op == 0x06:
+            out.append(pos)
+        pos += 9 + length
+    return out
+
+
+def test_a_compressed_chunk_contradicting_its_index_is_left_out(tmp_path: Path) -> None:
+    """A zstd chunk that decompresses and parses, but a message moved to another channel: past
+    the damage its bytes cannot be trusted, the chunk is left out whole and said so."""
+    _, unfinished, written = write_flushed_bag(tmp_path / 'bag', 'zstd')
+    content = unfinished.read_bytes()
+    second = chunk_starts_of(content)[1]
+    (length,) = struct.unpack_from('<Q', content, second + 1)
+    body = content[second + 9 : second + 9 + length]
+    head = body[: 28 + 4 + 4 + 8]
+    assert head[28:36] == struct.pack('<I', 4) + b'zstd'
+    records = bytearray(zstandard.ZstdDecompressor().decompress(body[len(head) :]))
+    at = records.index(struct.pack('<BQ', 0x05, 22 + len(written[4][2])) + b'\x01\x00')
+    struct.pack_into('<H', records, at + 9, 2)  # /reference -> /odom
+    data = zstandard.ZstdCompressor().compress(bytes(records))
+    body = head[:36] + struct.pack('<Q', len(data)) + data
+    damaged = content[:second] + struct.pack('<BQ', 0x06, len(body)) + body
+    damaged += content[second + 9 + length :]
+    s, got = scan(damaged)
+    assert got == written[:FLUSH_EVERY] + written[2 * FLUSH_EVERY :]
+    (skip,) = s.skipped
+    assert (skip.offset, skip.kept, skip.lost) == (second, 0, FLUSH_EVERY)
+    assert 'differ from the message index' in skip.reason
+
+
+def test_unreadable_chunk_length_resumes_at_the_next_chunk_of_the_summary(tmp_path: Path) -> None:
+    """The first chunk's length overruns the file and its first record is zeroed: its end is
+    unknown and it cannot be read with the summary's chunk index either. Reading goes on at the
+    next chunk the summary lists; the channels declared in the lost chunk come from the
+    summary."""
+    complete, _, written = write_flushed_bag(tmp_path / 'bag', 'none')
+    content = bytearray(complete.read_bytes())
+    first = chunk_starts(complete)[0]
+    struct.pack_into('<Q', content, first + 1, 2**60)
+    content[first + 9 + 40] = 0  # the first record inside the (uncompressed) chunk
+    s, got = scan(bytes(content))
+    assert got == written[FLUSH_EVERY:]
+    assert s.complete
+    (skip,) = s.skipped
+    assert (skip.offset, skip.lost) == (first, None)
+    assert skip.offset + skip.length == chunk_starts(complete)[1]
+
+
+@pytest.mark.parametrize('compression', ['none', 'zstd'])
+def test_zero_filled_tail_keeps_what_a_cut_keeps(tmp_path: Path, compression: str) -> None:
+    """A file whose end was never written but is there, full of zeros (its length kept): the last
+    chunk's length fits in the file, yet its complete messages are kept as if the file were cut
+    where the zeros start (a message reaching into them may have zeros that were never its
+    bytes)."""
+    bag = tmp_path / 'bag'
+    rng = np.random.default_rng(3)
+    with BagWriter(bag, compression) as w:
+        w.add_topic('/reference', POSE_STAMPED)
+        for k in range(3000):  # random positions: a zstd chunk of several blocks
+            data = encode_pose_stamped(
+                PoseSample(k, 'world', rng.normal(size=3), np.array([0, 0, 0, 1.0]))
+            )
+            w.write('/reference', 1_000 + k, data)
+        w.flush()
+        content = (bag / 'bag.mcap').read_bytes()
+    (start,) = chunk_starts_of(content)
+    end = start + 9 + struct.unpack_from('<Q', content, start + 1)[0]
+    most = 0
+    for cut in reversed(range(start + 100, end, (end - start) // 7)):
+        _, want = scan(content[:cut].rstrip(b'\0'))
+        s, got = scan(content[:cut] + bytes(len(content) - cut))
+        assert got == want, cut
+        assert s.damaged_tail and not s.skipped and s.end == start
+        assert s.partial_chunk_messages == len(want)
+        most = max(most, len(want))
+    assert most > 1000
+
+
+def test_nothing_to_recover_is_an_error_without_output(tmp_path: Path, capsys) -> None:
+    complete, _, _ = write_flushed_bag(tmp_path / 'bag', 'zstd')
+    content = complete.read_bytes()
+    for cut in (5, 8, 100):
+        src = tmp_path / f'cut{cut}'
+        src.mkdir()
+        (src / 'cut.mcap').write_bytes(content[:cut])
+        with pytest.raises(RecoverError, match=r'nothing to recover .*no output written'):
+            recover_bag(src)
+        assert not default_output(src).exists()
+    assert cloe(['bag', 'recover', str(tmp_path / 'cut100')]) == 1
+    assert 'nothing to recover' in capsys.readouterr().err
+    assert not default_output(tmp_path / 'cut100').exists()
+
+
+def test_opcode_0x10_is_not_a_record(tmp_path: Path) -> None:
+    """The MCAP specification defines opcodes 0x01-0x0F; 0x10 is no record."""
+    _, unfinished, written = write_flushed_bag(tmp_path / 'bag', 'none')
+    s, got = scan(unfinished.read_bytes() + struct.pack('<BQ', 0x10, 0))
+    assert got == written
+    assert 'invalid opcode 0x10' in s.reason
 
 
 @pytest.mark.parametrize(

@@ -239,7 +239,8 @@ class PlayerNode(Node):
             1000,
             d('history depth of the publishers', read_only=ro, int_range=(1, 1_000_000)),
         )
-        if not self.bag_path.strip():
+        if not isinstance(self.bag_path, str) or not self.bag_path.strip():
+            # -p "bag:=  " reaches rclpy as YAML null: a parameter without a value
             raise common.ParameterError(
                 "parameter 'bag' is required: pass the bag to play, e.g. -p bag:=/path/to/bag"
             )
@@ -307,6 +308,9 @@ class PlayerNode(Node):
                 reliable, transient_local = True, False
             qos = common.qos(reliable, self.qos_depth, transient_local)
             self._publishers_by_topic[name] = self.create_publisher(cls, name, qos)
+        if not bag.topics:
+            bag.close()
+            raise common.ParameterError(f'{bag.path}: nothing to play: the bag has no topics')
         if not self._publishers_by_topic:
             bag.close()
             raise common.ParameterError(f'{bag.path}: nothing to play (no topic can be published)')
@@ -392,7 +396,15 @@ class PlayerNode(Node):
         except Exception as err:  # a damaged bag, or a bug: say so and stop with status 1
             if not self._interrupted():  # else: Ctrl-C / SIGTERM tore the context down
                 self.failed = True
-                self.get_logger().error(str(err) if isinstance(err, BagError) else repr(err))
+                text = repr(err)
+                if isinstance(err, BagError):
+                    text = str(err)
+                    if 'cloe bag recover' not in text:
+                        text += (
+                            f' `cloe bag recover {self.bag_path}` writes a bag with every message '
+                            'that can still be read.'
+                        )
+                self.get_logger().error(text)
                 self._wait_for_acks()  # what was played reaches the subscribers all the same
         finally:
             self.finished.set()
@@ -456,7 +468,7 @@ class PlayerNode(Node):
             count += 1
             self.published = count
             item = self._buffer.get()
-        if clock is not None:
+        if clock is not None and bag.message_count:  # no messages, no bag time to publish
             clock.publish(encode_clock(bag.end_ns))
         elapsed = time.perf_counter() - wall_start
         self._wait_for_acks()

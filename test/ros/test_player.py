@@ -44,6 +44,7 @@ from cloe_ros.io.messages import (
     ns_to_time,
 )
 from cloe_ros.io.reader import BagReader
+from cloe_ros.ros import player_node
 from cloe_ros.ros.common import ParameterError, qos
 from cloe_ros.ros.player_node import PlayerNode, playback_qos
 
@@ -292,17 +293,23 @@ def test_skips_types_without_python_package(ros, tmp_path):
 
 
 def test_damaged_chunk_mid_play(ros, tmp_path):
-    """The messages before a corrupt chunk are played, then the process ends with status 1."""
+    """The messages before a corrupt chunk are played, then the process ends with status 1. The
+    damage leaves every record readable (a message's log time overwritten with the next one's):
+    only the message index after the chunk tells, and rosbags alone played on silently."""
     bag = tmp_path / 'bag'
     write_small_bag(bag, {'/odom': ODOMETRY}, n=3000)  # 30 s, more than one 1 MiB chunk
     mcap = bag / 'bag.mcap'
     with open(mcap, 'rb') as fh:
-        chunks = make_reader(fh).get_summary().chunk_indexes
+        chunks = sorted(
+            make_reader(fh).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset
+        )
     assert len(chunks) >= 2
     before = round((chunks[1].message_start_time - 10**18) / 10**7)  # messages of chunk 0
     data = bytearray(mcap.read_bytes())
-    crc_at = chunks[1].chunk_start_offset + 1 + 8 + 24
-    data[crc_at : crc_at + 4] = (12345).to_bytes(4, 'little')
+    first = chunks[1].chunk_start_offset + 9 + 40  # its first record (uncompressed, a message)
+    assert data[first] == 0x05
+    second = first + 9 + int.from_bytes(data[first + 1 : first + 9], 'little')
+    data[first + 15 : first + 23] = data[second + 15 : second + 23]  # log time
     mcap.write_bytes(bytes(data))
     arrivals = Arrivals(ros.node, {'/odom': Odometry})
     player = NodeProcess(
@@ -315,6 +322,7 @@ def test_damaged_chunk_mid_play(ros, tmp_path):
     err = player.stderr_path.read_text()
     assert status == 1, output(player)
     assert f'{mcap}: corrupt chunk at byte offset {chunks[1].chunk_start_offset}' in err
+    assert 'differ from the message index' in err and f'cloe bag recover {bag}' in err
     assert 'Traceback' not in err
     assert 'done:' not in output(player)
     assert 0 < before < 3000
@@ -474,11 +482,42 @@ def test_runtime_parameters_and_recorded_qos(ros, tmp_path):
         player.destroy_node()
 
 
-def test_in_process_refusals(ros):
+def test_in_process_refusals(ros, tmp_path):
     with pytest.raises(ParameterError, match="parameter 'bag' is required"):
         PlayerNode(context=ros.ctx)
+    # -p "bag:=  " is YAML null: rclpy gives the parameter no value
+    with pytest.raises(ParameterError, match="parameter 'bag' is required"):
+        PlayerNode(context=ros.ctx, parameter_overrides=[Parameter('bag', Parameter.Type.NOT_SET)])
+    with Writer(tmp_path / 'empty', version=9, storage_plugin=StoragePlugin.MCAP):
+        pass
+    with pytest.raises(ParameterError, match='nothing to play: the bag has no topics'):
+        PlayerNode(
+            context=ros.ctx, parameter_overrides=[Parameter('bag', value=str(tmp_path / 'empty'))]
+        )
     with pytest.raises(ParameterError, match=r'rate must be in \(0, 100\]'):
         PlayerNode(
             context=ros.ctx,
             parameter_overrides=[Parameter('bag', value=str(B2)), Parameter('rate', value=0.0)],
         )
+
+
+def test_no_clock_for_a_bag_without_messages(ros, tmp_path, monkeypatch):
+    """Topics but no messages: there is no bag time, so no /clock (it was 0)."""
+    bag = tmp_path / 'bag'
+    write_small_bag(bag, {'/odom': ODOMETRY}, n=0)
+    sent: list[int] = []
+    monkeypatch.setattr(player_node, 'encode_clock', lambda ns: sent.append(ns) or Clock())
+    player = PlayerNode(
+        context=ros.ctx,
+        parameter_overrides=[
+            Parameter('bag', value=str(bag)),
+            Parameter('publish_clock', value=True),
+            Parameter('exit_when_done', value=False),
+        ],
+    )
+    try:
+        assert player.finished.wait(5.0)
+        assert not player.failed and player.published == 0
+        assert sent == []
+    finally:
+        player.destroy_node()

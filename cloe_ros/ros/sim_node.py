@@ -7,6 +7,12 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle) it publishes ``<ns>/o
 (Float64MultiArray, transient local: the Theta of the hover linearization, labelled like
 ``cloe/parameters``). Stamps are simulation time from an origin taken at start; with
 ``publish_clock`` the same time goes to ``/clock`` so other nodes can run with ``use_sim_time``.
+
+Time: the simulator is the clock source, so it paces itself on the steady (wall) clock, never on
+its node clock; the origin of the stamps is the system time at start. ``use_sim_time:=true`` is
+accepted with ``publish_clock:=true`` (the node's own clock then follows the ``/clock`` it
+publishes) and refused at start-up without it: the other nodes would wait for a ``/clock`` that
+nobody publishes.
 """
 
 from __future__ import annotations
@@ -16,6 +22,8 @@ import time
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -100,6 +108,13 @@ class SimulatorNode(Node):
         self.shutdown_when_done = get('shutdown_when_done')
         self.wait_for_subscribers = get('wait_for_subscribers')
         self.wait_timeout = get('wait_timeout')
+        if self.get_parameter('use_sim_time').value and not self.publish_clock:
+            raise ParameterError(
+                'use_sim_time is true but publish_clock is false: the simulator is the clock '
+                'source, and without publish_clock nobody publishes /clock; set '
+                'publish_clock:=true (or use_sim_time:=false)',
+                'use_sim_time',
+            )
 
         depth = get('qos_depth')
         self.pubs = {}
@@ -129,7 +144,11 @@ class SimulatorNode(Node):
         self._step = 0
         self.done = False
         period = 1.0 / get('odom_rate') if self.rtf > 0 else 0.001
-        self.timer = self.create_timer(period, self._tick)
+        # paced on the steady clock: with use_sim_time the node clock only moves with the /clock
+        # this node itself publishes
+        self.timer = self.create_timer(
+            period, self._tick, clock=RosClock(clock_type=ClockType.STEADY_TIME)
+        )
         self.get_logger().info(
             f'simulating {scenario.name} for {self.duration:g} s, {n} vehicle(s), '
             f'real-time factor {self.rtf:g}'
@@ -249,7 +268,7 @@ class SimulatorNode(Node):
         if self.origin_ns is None:
             if not self._ready():
                 return
-            self.origin_ns = self.get_clock().now().nanoseconds
+            self.origin_ns = time.time_ns()  # system time, whatever the node clock
             self.wall_start = time.monotonic()
             if self.publish_truth:
                 for v in self.vehicles:

@@ -350,7 +350,15 @@ def _scores_table(
     )
 
 
-def _parameter_tables(vehicle: VehicleData, outputs: dict[str, np.ndarray]) -> list[Table]:
+def _parameter_tables(
+    vehicle: VehicleData,
+    outputs: dict[str, np.ndarray],
+    models: dict[str, np.ndarray] | None = None,
+) -> list[Table]:
+    """The final Θ̂ (beside the truth when known) and the poles per block of Θ̂, of the usable
+    model an output predicts with where it publishes one (``models``: ``model.theta.*``), and of
+    the truth."""
+    models = models or {}
     truth = vehicle.true_parameters
     if truth is not None and len(truth) != N_PARAMS:
         truth = None
@@ -371,19 +379,31 @@ def _parameter_tables(vehicle: VehicleData, outputs: dict[str, np.ndarray]) -> l
     if truth is None:
         note += '; no true parameters in the bag (a real flight): Θ̂ cannot be scored directly'
     params = Table(f'{vehicle.namespace or "/"}: identified parameters Θ̂', columns, rows, note)
-    pole_cols = ['block', *outputs] + (['true'] if truth is not None else [])
-    poles = {n: _max_real_poles(theta) for n, theta in outputs.items()}
-    true_poles = _max_real_poles(truth) if truth is not None else None
-    pole_rows = [
-        [b.name, *[poles[n][b.name] for n in outputs]]
-        + ([true_poles[b.name]] if true_poles else [])
-        for b in BLOCKS
-    ]
+    pole_cols, pole_values = ['block'], []
+    for n, theta in outputs.items():
+        pole_cols.append(f'{n} Θ̂')
+        pole_values.append(_max_real_poles(theta))
+        if n in models:
+            pole_cols.append(f'{n} usable model')
+            pole_values.append(_max_real_poles(models[n]))
+    if truth is not None:
+        pole_cols.append('true')
+        pole_values.append(_max_real_poles(truth))
+    pole_rows = [[b.name, *[p[b.name] for p in pole_values]] for b in BLOCKS]
+    note = (
+        'Θ̂: the raw estimate (the final Θ̂ entries of <output>/parameters); > 0: that block of Θ̂ '
+        'is unstable. cloe and cloe_sm predict with Θ̂ and withhold their predictions while a '
+        'block of it is unstable; cloe_iv predicts with its usable model (model.theta.* of '
+        '<output>/parameters), which it keeps stable, so an unstable block of its Θ̂ makes no '
+        'prediction diverge'
+    )
+    if models:
+        note += '; usable model: the final model.theta.* (the model the predictions used)'
     stability = Table(
         f'{vehicle.namespace or "/"}: largest real part of the closed-loop poles per block [1/s]',
         pole_cols,
         pole_rows,
-        '> 0: the identified model of that block is unstable, and its predictions diverge',
+        note,
     )
     return [params, stability]
 
@@ -402,7 +422,8 @@ def _prediction_table(vehicle: VehicleData, preds: dict[str, PredictionScore]) -
         f'{vehicle.namespace or "/"}: prediction RMSE against the measured position [m]',
         columns,
         rows,
-        'per path, the pose nearest to issue time + horizon (within '
+        'every path of the recording, in flight or not (cloe evaluate bag scores from 5 s on, '
+        'in flight); per path, the pose nearest to issue time + horizon (within '
         f'{100 * HORIZON_TOLERANCE:g} %) against the measured position interpolated at its stamp; '
         'baselines from the measured position and velocity at the issue time',
     )
@@ -456,12 +477,21 @@ def _input_table(inference: InferResult | None, diagnostics: dict) -> Table | No
     return None
 
 
-def _caption(kind: str, vehicle: VehicleData) -> str:
+def _caption(kind: str, vehicle: VehicleData, measurement_error: bool = False) -> str:
+    """The caption of a figure; ``measurement_error``: the measurements differ from the ground
+    truth (a noisy simulation), so the errors figure draws their own error in grey."""
     truth = vehicle.ground_truth is not None
     against = AGAINST_TEXT['truth' if truth else 'measurement'].replace(
         '<ns>', vehicle.namespace or ''
     )
-    grey = "; grey: the measurement's own error" if truth else ''
+    grey = ''
+    if truth:
+        grey = (
+            "; grey: the measurement's own error"
+            if measurement_error
+            else '; the measurements equal the truth (a noise-free simulation): no line of '
+            'their own'
+        )
     dotted = (
         'dotted: the true values'
         if vehicle.true_parameters is not None
@@ -489,7 +519,7 @@ def _caption(kind: str, vehicle: VehicleData) -> str:
 
 def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     """Tables, figures and numbers of one vehicle."""
-    from cloe_ros.cli.plots import flight_figures, prediction_figure
+    from cloe_ros.cli.plots import flight_figures, model_columns, prediction_figure
 
     label = vehicle.namespace or '/'
     if not len(vehicle.odom):
@@ -515,6 +545,7 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     }
     scores: dict[str, Score] = {}
     finals: dict[str, np.ndarray] = {}
+    models: dict[str, np.ndarray] = {}
     preds: dict[str, PredictionScore] = {}
     for name, out in sorted(vehicle.outputs.items()):
         entry: dict = {'algorithm': out.algorithm, 'score': None, 'final_parameters': None,
@@ -529,6 +560,12 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
             entry['final_parameters'] = dict(zip(PARAMETER_NAMES, map(float, theta)))
             entry['parameters_time_s'] = (out.parameters.t_ns[-1] - t0) / NS
             entry['max_real_pole'] = _max_real_poles(theta)
+            columns = model_columns(out)
+            if columns is not None:  # cloe_iv: the usable model it predicts with
+                model = out.parameters.values[-1, columns]
+                models[out.label] = model
+                entry['final_model_parameters'] = dict(zip(PARAMETER_NAMES, map(float, model)))
+                entry['model_max_real_pole'] = _max_real_poles(model)
         if out.prediction is not None and len(out.prediction.t_ns):
             p = prediction_rmse(out.prediction, vehicle.odom)
             preds[out.label] = p
@@ -554,7 +591,7 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     if preds:
         tables.append(_prediction_table(vehicle, preds))
     if finals:
-        tables += _parameter_tables(vehicle, finals)
+        tables += _parameter_tables(vehicle, finals, models)
 
     paths = flight_figures(vehicle, folder)  # outputs named by their label
     if preds:
@@ -570,7 +607,8 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     for path in paths:
         kind = re.sub(r'^.*?_(errors|states|parameters|parameter_error|path|prediction)\.png$',
                       r'\1', path.name)  # fmt: skip
-        figures.append(Figure(path, _caption(kind, vehicle)))
+        measured_error = measurement is not None and measurement.rmse > 0.0
+        figures.append(Figure(path, _caption(kind, vehicle, measured_error)))
     data['figures'] = [f.path.name for f in figures]
     return VehicleReport(label, tables, main, figures, data)
 

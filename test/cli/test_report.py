@@ -214,6 +214,30 @@ def test_report_on_an_input_bag_infers_it_first(input_bag, tmp_path, capsys):
     summary = (folder / 'summary.md').read_text()
     assert '| parameter | cloe (cloe_iv) Θ̂ | true Θ | cloe (cloe_iv) error [%] |' in summary
     assert 'scored against' in summary and 'simulator ground truth' in summary
+    # the pole table says whose poles: cloe_iv's raw Θ̂ and the usable model it predicts with
+    assert '| block | cloe (cloe_iv) Θ̂ | cloe (cloe_iv) usable model | true |' in summary
+    assert 'cloe_iv predicts with its usable model (model.theta.*' in summary
+    assert 'predictions diverge' not in summary
+    poles = vehicle['outputs']['cloe']['model_max_real_pole']
+    assert all(p < 0 for p in poles.values()), poles  # the usable model is stable
+    # a noisy simulation: the errors figure draws the measurement's own error in grey
+    assert "grey: the measurement's own error" in summary
+
+
+def test_report_on_a_noise_free_simulation_says_the_measurement_is_the_truth(tmp_path, capsys):
+    """No odom column and no grey line when the measurements equal the truth, and the captions
+    say so rather than promising them."""
+    result = QuadrotorSimulator(SCENARIOS['position'], dt=2e-3).run(3.0)
+    bag = write_sim_bag(tmp_path / 'clean', result)
+    status, out, err = run_report(capsys, bag, '-o', tmp_path / 'report', '-q')
+    assert status == 0, err
+    assert table_header(out, '/: estimation error against the ground truth') == [
+        'metric', 'cloe', '(cloe_iv)',
+    ]  # fmt: skip
+    summary = (tmp_path / 'report' / 'summary.md').read_text()
+    assert 'the measurements equal the truth (a noise-free simulation)' in summary
+    assert "the measurement's own error" not in summary
+    assert 'the measurements equal the truth (a noise-free simulation): no line' in summary
 
 
 @pytest.mark.slow

@@ -62,7 +62,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         '--quick',
         action='store_true',
-        help='shorter runs (position 50 s, trajectory 140 s at 200 Hz) for a smoke test',
+        help='a smoke test: 200 Hz instead of --rate, and a 50 s position run for the parameter '
+        'figures instead of --parameter-duration (the tables cover 50 s and 140 s as always)',
     )
     p.add_argument('--no-plots', action='store_true', help='tables only')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')

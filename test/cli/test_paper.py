@@ -40,6 +40,16 @@ def test_paper_quick_prints_tables_and_writes_figures(tmp_path, capsys):
     )
 
 
+def test_paper_quick_help_says_what_changes(capsys):
+    """--quick lowers the rate and shortens the parameter run; the table lengths stay."""
+    with pytest.raises(SystemExit):
+        main(['paper', '--help'])
+    text = ' '.join(capsys.readouterr().out.split())
+    assert '200 Hz instead of --rate' in text
+    assert '50 s position run for the parameter figures instead of --parameter-duration' in text
+    assert 'shorter runs' not in text
+
+
 def test_paper_refuses_a_bad_rate(capsys):
     assert main(['paper', '--rate', '5', '--no-plots']) == 1
     assert 'ERROR: --rate must be within [20, 10000] Hz, got 5' in capsys.readouterr().err

@@ -336,8 +336,11 @@ class IvIdentifier:
         x_ss = np.linalg.solve(np.eye(3) - ad, bd)  # state for a constant unit input
         u0 = self._channels(zeta0, r0, zeta0)
         self._fx = u0[..., None] * x_ss  # (N, C, 3)
-        # auxiliary model (reference-driven simulation of every block)
+        # auxiliary model (reference-driven simulation of every block), and the constant taken
+        # off its output (see _set_aux)
         self.x_aux = zeta0.copy()
+        self._aux_shift = np.zeros((n, N_STATES))
+        self._last_r = r0.copy()
         self._aux_ad = np.zeros((n, N_STATES, N_STATES))
         self._aux_bd = np.zeros((n, N_STATES, N_REFERENCES))
         self.aux_theta = self.theta.copy()
@@ -347,7 +350,7 @@ class IvIdentifier:
         self.model_theta = np.tile(start, (n, 1))
         self.model_coupling = self.coupling.copy()
         self.model_kind = np.full((n, len(BLOCKS)), 'prior')  # per block: prior|reduced|full
-        self._set_aux(np.ones(n, dtype=bool))
+        self._set_aux(np.ones(n, dtype=bool), shift=False)
         self._since_aux = 0.0
         # normal equations and excitation statistics per row (normalised coordinates)
         shape = (n, N_ROWS, WIDTH, WIDTH)
@@ -421,10 +424,34 @@ class IvIdentifier:
         theta = np.concatenate([rows[:, p, : ROW_SIZE[p]] for p in range(len(BLOCKS))], axis=1)
         return theta, rows[:, list(COUPLING_ROWS), 0].copy(), rows[:, list(LOOP_ROWS), :2].copy()
 
-    def _set_aux(self, which: np.ndarray) -> None:
-        """Discretise the auxiliary model (exact ZOH) for the vehicles in ``which``."""
-        ad, bd = discretise(self.aux_theta[which], self.aux_coupling[which], self.h)
+    def _set_aux(self, which: np.ndarray, shift: bool = True) -> None:
+        """Discretise the auxiliary model (exact ZOH) for the vehicles in ``which``.
+
+        With ``shift``, the state first moves by the change of the equilibrium under the latest
+        reference, ``x_eq = -A^-1 B r``, and so does the constant taken off the output: the
+        instruments see no transient from the model change itself. Without it, a block whose
+        static gain ``g`` changes would ring by ``(g_new - g_old) r``, in proportion to where the
+        vehicle is, and the estimate would depend on the origin of the world frame.
+        """
+        theta, coupling = self.aux_theta[which], self.aux_coupling[which]
+        if shift:
+            old_theta, old_coupling = self._aux_running
+            step = self._equilibrium(theta, coupling, which) - self._equilibrium(
+                old_theta[which], old_coupling[which], which
+            )
+            self.x_aux[which] += step
+            self._aux_shift[which] += step
+        ad, bd = discretise(theta, coupling, self.h)
         self._aux_ad[which], self._aux_bd[which] = ad, bd
+        self._aux_running = (self.aux_theta.copy(), self.aux_coupling.copy())
+
+    def _equilibrium(self, theta: np.ndarray, coupling: np.ndarray, which: np.ndarray
+                     ) -> np.ndarray:  # fmt: skip
+        """Steady state of the model ``(theta, coupling)`` under the latest reference of the
+        vehicles ``which`` (len(which), 12)."""
+        a, b = system_matrices(theta, coupling)
+        rhs = -np.einsum('nij,nj->ni', b, self._last_r[which])
+        return np.linalg.solve(a, rhs[..., None])[..., 0]
 
     # ------------------------------------------------------------------------ step
 
@@ -443,7 +470,8 @@ class IvIdentifier:
         self.x_aux = np.einsum('nij,nj->ni', self._aux_ad, self.x_aux) + np.einsum(
             'nij,nj->ni', self._aux_bd, r
         )
-        u = self._channels(zeta, r, self.x_aux)
+        self._last_r[:] = r
+        u = self._channels(zeta, r, self.x_aux - self._aux_shift)
         x = self._fx
         self._t += h
         f = np.empty((u.shape[0], N_CHANNELS + 1))

@@ -49,6 +49,8 @@ from cloe_ros.ros.common import (
 
 #: Parameters whose change restarts the estimators (the identified model is forgotten).
 RESTARTING = ('algorithm', 'rate')
+#: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
+STALE_AFTER = 2.0
 
 
 class InferenceNode(Node):
@@ -69,6 +71,7 @@ class InferenceNode(Node):
         self.publishers_: dict[str, object] = {}
         self.malformed: dict[str, int] = {}
         self.vehicle_ns: dict[str, str] = {}
+        self._odom_heard: dict[str, float] = {}  # wall (monotonic) time of the last odometry
         for v in self.vehicles:
             self._make_vehicle(v)
             events = SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos(v))
@@ -271,6 +274,7 @@ class InferenceNode(Node):
             except MessageError as err:
                 self._malformed(vehicle, 'odom', err)
                 return
+            self._odom_heard[vehicle] = time.monotonic()
             engine[vehicle].add_odometry(sample)
             self._warn_rejections(vehicle)
             self._publish(vehicle)
@@ -397,6 +401,11 @@ class InferenceNode(Node):
             message = f'running; {rejected} input(s) rejected, the last: {last}'
         else:
             level, message = messages.OK, 'running'
+        heard = self._odom_heard.get(vehicle)
+        silent = None if heard is None else time.monotonic() - heard
+        if engine.started and silent is not None and silent > STALE_AFTER:
+            level = messages.WARN
+            message = f'{message}; no odometry for {silent:.1f} s'
         note = self._last_prediction_note.get(vehicle, '')
         if engine.started and note and not note.startswith('identified'):
             message += f'; prediction {note}'
@@ -405,6 +414,7 @@ class InferenceNode(Node):
             ('output_ns', self.output_config.output_ns),
             *self._identification_values(vehicle),
             ('rate_hz', f'{engine.config.rate:g}'),
+            ('odom_silent_s', '' if silent is None else f'{silent:.1f}'),
             ('steps_per_s', f'{steps_per_s:.1f}'),
             ('steps', str(s.steps)),
             ('odom_received', str(s.odom_received)),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import array
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from cloe_ros.core.simulator import QuadrotorSimulator, get_scenario, true_param
 from cloe_ros.io import messages
 from cloe_ros.io.config import RANGES
 from cloe_ros.io.outputs import PARAMETER_LABELS
+from cloe_ros.ros import inference_node
 from cloe_ros.ros.common import ParameterError
 from cloe_ros.ros.inference_node import InferenceNode
 from cloe_ros.ros.sim_node import SimulatorNode
@@ -102,7 +104,11 @@ def test_sim_and_inference_infer_the_simulated_state(context):
         _, statuses = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
         (status,) = statuses
         values = dict(status.values)
-        assert status.name == 'cloe_inference: /' and status.level == messages.OK
+        assert status.name == 'cloe_inference: /'
+        # OK, unless the odometry has already been silent for STALE_AFTER s (then it says so)
+        assert status.level == messages.OK or (
+            status.level == messages.WARN and status.message.startswith('running; no odometry for')
+        ), status.message
         assert int(values['steps']) == len(states) and values['rejected'] == '0'
     finally:
         ex.shutdown()
@@ -503,5 +509,31 @@ def test_diagnostics_name_each_vehicle_by_its_recorded_namespace(context, namesp
             'cloe_inference', namespace)}  # fmt: skip
         for ns in expected:
             assert f'{ns.rstrip("/")}/odom' in topics
+    finally:
+        inf.destroy_node()
+
+
+def test_a_vehicle_whose_odometry_stops_is_reported_silent(context, monkeypatch):
+    """Once a started vehicle has had no odometry for STALE_AFTER s of wall time, its status
+    turns WARN and says for how long; it is OK while the odometry flows."""
+    monkeypatch.setattr(inference_node, 'STALE_AFTER', 0.3)
+    inf = InferenceNode(context=context)
+    try:
+        zeta, r = np.zeros(12), np.array([0.0, 0.0, 0.0, 1.0])
+        zeta[10] = 1.0
+        odom_cb, ref_cb = inf._odometry_callback(''), inf._reference_callback('')
+        for k in range(20):
+            stamp = 1_000_000_000_000 + k * 10_000_000
+            ref_cb(_ref_bytes(stamp, r))
+            odom_cb(_odom_bytes(stamp, zeta))
+        flowing = inf.vehicle_status('', 0.0)
+        assert inf.engines[''].started
+        assert flowing.level == messages.OK, flowing.message
+        assert float(dict(flowing.values)['odom_silent_s']) < 0.3
+        time.sleep(0.4)
+        silent = inf.vehicle_status('', 0.0)
+        assert silent.level == messages.WARN
+        assert silent.message.startswith('running; no odometry for ')
+        assert float(dict(silent.values)['odom_silent_s']) >= 0.4
     finally:
         inf.destroy_node()

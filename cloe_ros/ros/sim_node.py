@@ -100,6 +100,9 @@ class SimulatorNode(Node):
         self.duration = get('duration') or scenario.duration
         self.rtf = get('real_time_factor')
         self.world_frame, self.body_frame = get('world_frame'), get('body_frame')
+        # one body frame per vehicle when there are several (TF frame ids: no leading slash)
+        self.body_frames = {v: f'{v.strip("/")}/{self.body_frame}' if v else self.body_frame
+                            for v in self.vehicles}  # fmt: skip
         sim_rate = get('sim_rate')
         self.odom_every = self._divisor(sim_rate, get('odom_rate'), 'odom_rate')
         self.ref_every = self._divisor(sim_rate, get('reference_rate'), 'reference_rate')
@@ -199,7 +202,8 @@ class SimulatorNode(Node):
             ('inertia', [0.01, 0.01, 0.02], describe(
                 'Jx, Jy, Jz, kg m^2', additional_constraints='3 values > 0', **ro)),
             ('world_frame', 'world', describe('header.frame_id of odom and reference', **ro)),
-            ('body_frame', 'base_link', describe('child_frame_id of odom', **ro)),
+            ('body_frame', 'base_link', describe(
+                'child_frame_id of odom (with vehicles: <vehicle>/<body_frame>)', **ro)),
             ('wait_for_subscribers', 0, describe(
                 'wait until every odom and reference topic has this many subscribers before '
                 'starting',
@@ -319,10 +323,10 @@ class SimulatorNode(Node):
             truth = self.sim.zeta
             measured = self.sim.add_noise(truth)
             for i, v in enumerate(self.vehicles):
-                self.pubs[(v, 'odom')].publish(self._odometry(stamp, measured[i], noisy=True))
+                self.pubs[(v, 'odom')].publish(self._odometry(stamp, measured[i], v, noisy=True))
                 if self.publish_truth:
                     self.pubs[(v, 'ground_truth')].publish(
-                        self._odometry(stamp, truth[i], noisy=False)
+                        self._odometry(stamp, truth[i], v, noisy=False)
                     )
         if send_ref:
             ref = self.sim.reference(self.sim.t)
@@ -333,7 +337,7 @@ class SimulatorNode(Node):
                 )
                 self.pubs[(v, 'reference')].publish(encode_pose_stamped(sample))
 
-    def _odometry(self, stamp: int, zeta: np.ndarray, noisy: bool) -> bytes:
+    def _odometry(self, stamp: int, zeta: np.ndarray, vehicle: str, noisy: bool) -> bytes:
         position, quaternion, v_body, w_body = state_to_odometry(zeta)
         pose_cov = twist_cov = None
         if noisy and self.noise.enabled:
@@ -344,7 +348,7 @@ class SimulatorNode(Node):
             OdometrySample(
                 stamp,
                 self.world_frame,
-                self.body_frame,
+                self.body_frames[vehicle],
                 position,
                 quaternion,
                 v_body,

@@ -537,3 +537,25 @@ def test_a_vehicle_whose_odometry_stops_is_reported_silent(context, monkeypatch)
         assert float(dict(silent.values)['odom_silent_s']) >= 0.4
     finally:
         inf.destroy_node()
+
+
+def test_each_simulated_vehicle_has_its_own_body_frame(context):
+    sim = SimulatorNode(context=context, parameter_overrides=[
+        Parameter('vehicles', value=['/uav1', '/uav2']), Parameter('duration', value=0.2),
+        Parameter('real_time_factor', value=0.0)])  # fmt: skip
+    col = Collector(context, {'/uav1/odom': Odometry, '/uav2/odom': Odometry,
+                              '/uav2/ground_truth': Odometry})  # fmt: skip
+    ex = _executor(context, sim, col.node)
+    try:
+        assert spin_until(ex, lambda: sim.done, timeout=30)
+        spin_until(ex, lambda: False, timeout=0.3)
+        frames = {topic: {(m.frame_id, m.child_frame_id)
+                          for m in map(messages.decode_odometry, raws)}
+                  for topic, raws in col.msgs.items()}  # fmt: skip
+        assert frames == {'/uav1/odom': {('world', 'uav1/base_link')},
+                          '/uav2/odom': {('world', 'uav2/base_link')},
+                          '/uav2/ground_truth': {('world', 'uav2/base_link')}}  # fmt: skip
+    finally:
+        ex.shutdown()
+        for n in (sim, col.node):
+            n.destroy_node()

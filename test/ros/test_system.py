@@ -312,18 +312,16 @@ def check_sim_topics(bag: dict, ns: str = '') -> list[int]:
     return odom
 
 
-def check_states(states, odom: list[int]) -> list[int]:
+def check_states(states, odom: list[int], body: str = 'base_link') -> list[int]:
     """One estimate per odometry sample, on its stamp (the engine steps at the odometry's 100 Hz
-    from the first sample, which has a reference at the same stamp), in order. Returns the
-    state stamps."""
+    from the first sample, which has a reference at the same stamp), in order, in the frames of
+    the odometry (child ``body``). Returns the state stamps."""
     st = stamps_of(states)
     assert st == odom, (
         f'{len(st)} states from {(st[0] - odom[0]) / NS} s to {(st[-1] - odom[0]) / NS} s, '
         f'{len(odom)} odometry samples'
     )
-    assert {(m.header.frame_id, m.child_frame_id) for _, _, m in states} == {
-        ('world', 'base_link')
-    }
+    assert {(m.header.frame_id, m.child_frame_id) for _, _, m in states} == {('world', body)}
     return st
 
 
@@ -476,7 +474,7 @@ def test_two_vehicles(system) -> None:
     assert np.allclose(offset[0], [0.0, 2.0, 0.0])  # both start at rest, 2 m apart in y
     for v, other in zip(vehicles, reversed(vehicles)):
         states = bag[f'{v}/cloe/state']
-        st = check_states(states, odom)
+        st = check_states(states, odom, body=f'{v.strip("/")}/base_link')  # one body per vehicle
         err = position_errors(states, bag[f'{v}/ground_truth'], st[0], SKIP_S)
         wrong = position_errors(states, bag[f'{other}/ground_truth'], st[0], SKIP_S)
         print(f'{v}: position error max {err.max():.4f} m (to the other vehicle: min '

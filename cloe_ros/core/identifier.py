@@ -350,7 +350,7 @@ class IvIdentifier:
         self.model_theta = np.tile(start, (n, 1))
         self.model_coupling = self.coupling.copy()
         self.model_kind = np.full((n, len(BLOCKS)), 'prior')  # per block: prior|reduced|full
-        self._set_aux(np.ones(n, dtype=bool), shift=False)
+        self._set_aux(np.ones(n, dtype=bool))
         self._since_aux = 0.0
         # normal equations and excitation statistics per row (normalised coordinates)
         shape = (n, N_ROWS, WIDTH, WIDTH)
@@ -424,33 +424,27 @@ class IvIdentifier:
         theta = np.concatenate([rows[:, p, : ROW_SIZE[p]] for p in range(len(BLOCKS))], axis=1)
         return theta, rows[:, list(COUPLING_ROWS), 0].copy(), rows[:, list(LOOP_ROWS), :2].copy()
 
-    def _set_aux(self, which: np.ndarray, shift: bool = True) -> None:
+    def _set_aux(self, which: np.ndarray, before: np.ndarray | None = None) -> None:
         """Discretise the auxiliary model (exact ZOH) for the vehicles in ``which``.
 
-        With ``shift``, the state first moves by the change of the equilibrium under the latest
-        reference, ``x_eq = -A^-1 B r``, and so does the constant taken off the output: the
-        instruments see no transient from the model change itself. Without it, a block whose
-        static gain ``g`` changes would ring by ``(g_new - g_old) r``, in proportion to where the
-        vehicle is, and the estimate would depend on the origin of the world frame.
+        ``before``, the equilibrium (N, 12) of the model being replaced under the latest
+        reference (:meth:`_aux_equilibrium`): the state first moves by the change of that
+        equilibrium, and so does the constant taken off the output, so the instruments see no
+        transient from the model change itself. Without it, a block whose static gain ``g``
+        changes would ring by ``(g_new - g_old) r``, in proportion to where the vehicle is, and
+        the estimate would depend on the origin of the world frame.
         """
-        theta, coupling = self.aux_theta[which], self.aux_coupling[which]
-        if shift:
-            old_theta, old_coupling = self._aux_running
-            step = self._equilibrium(theta, coupling, which) - self._equilibrium(
-                old_theta[which], old_coupling[which], which
-            )
+        if before is not None:
+            step = self._aux_equilibrium()[which] - before[which]
             self.x_aux[which] += step
             self._aux_shift[which] += step
-        ad, bd = discretise(theta, coupling, self.h)
+        ad, bd = discretise(self.aux_theta[which], self.aux_coupling[which], self.h)
         self._aux_ad[which], self._aux_bd[which] = ad, bd
-        self._aux_running = (self.aux_theta.copy(), self.aux_coupling.copy())
 
-    def _equilibrium(self, theta: np.ndarray, coupling: np.ndarray, which: np.ndarray
-                     ) -> np.ndarray:  # fmt: skip
-        """Steady state of the model ``(theta, coupling)`` under the latest reference of the
-        vehicles ``which`` (len(which), 12)."""
-        a, b = system_matrices(theta, coupling)
-        rhs = -np.einsum('nij,nj->ni', b, self._last_r[which])
+    def _aux_equilibrium(self) -> np.ndarray:
+        """Steady state ``-A^-1 B r`` of the auxiliary model under the latest reference (N, 12)."""
+        a, b = system_matrices(self.aux_theta, self.aux_coupling)
+        rhs = -np.einsum('nij,nj->ni', b, self._last_r)
         return np.linalg.solve(a, rhs[..., None])[..., 0]
 
     # ------------------------------------------------------------------------ step
@@ -547,6 +541,7 @@ class IvIdentifier:
         usable = self.status >= CONVERGING
         moving = self.reference_rms() > QUIET
         stable = block_is_stable(self.theta, self.coupling, margin=0.05)
+        before = self._aux_equilibrium() if np.any(stable) else None
         for j, sl in enumerate(BLOCK_SLICES):
             ok = stable[:, j] & moving[:, j]
             self.aux_theta[ok, sl] = self.theta[ok, sl]
@@ -590,8 +585,8 @@ class IvIdentifier:
                 self.model_coupling[ok[:, j], j] = coupling[ok[:, j], j]
         self.model_kind = np.where(ok & use_full, 'full', np.where(ok, 'reduced',
                                                                     self.model_kind))  # fmt: skip
-        if np.any(stable):
-            self._set_aux(np.ones(n, dtype=bool))
+        if before is not None:
+            self._set_aux(np.ones(n, dtype=bool), before)
 
     def _validate(
         self, vs: np.ndarray, j: int, block_theta: np.ndarray, coupling: np.ndarray

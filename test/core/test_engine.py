@@ -461,20 +461,29 @@ def _stamped(sample, stamp_ns):
     return replace(sample, stamp_ns=stamp_ns)
 
 
+def _run_with_a_glitch(flight, kind: str, index: int, offset_s: float):
+    """The first 8 s of the flight, clean and with a copy of its ``kind`` ('odom' or 'ref')
+    message ``index`` restamped by ``offset_s`` and sent right after it: (the engine of the
+    glitched run, its estimates, the clean run's estimates)."""
+    odoms, refs = messages(flight)
+    odoms, refs = odoms[:800], refs[:400]
+    seq = in_time_order(odoms, refs)
+    clean = VehicleEngine(EngineConfig())
+    expected = run(clean, seq) + clean.finish()
+    stamp, sample = (odoms if kind == 'odom' else refs)[index]
+    at = seq.index((kind, sample)) + 1
+    glitch = _stamped(sample, stamp + round(offset_s * NS))
+    engine = VehicleEngine(EngineConfig())
+    out = run(engine, [*seq[:at], (kind, glitch), *seq[at:]]) + engine.finish()
+    return engine, out, expected
+
+
 @pytest.mark.parametrize('offset_s', [100.0, -5.0])
 def test_a_single_odometry_stamp_off_the_timeline_is_an_outlier(flight, offset_s):
     """One odometry stamp 100 s ahead (or 5 s behind) is not a time jump: the next one continues
     the old timeline, so it is rejected as a stamp outlier; published stamps never go back (they
     went 4.99 -> 105.0 -> 5.01 s) and the estimates are those of the clean run."""
-    odoms, refs = messages(flight)
-    odoms, refs = odoms[:800], refs[:400]
-    clean = VehicleEngine(EngineConfig())
-    expected = run(clean, in_time_order(odoms, refs)) + clean.finish()
-    engine = VehicleEngine(EngineConfig())
-    seq = in_time_order(odoms, refs)
-    at = seq.index(('odom', odoms[500][1])) + 1
-    glitch = _stamped(odoms[500][1], odoms[500][0] + round(offset_s * NS))
-    out = run(engine, [*seq[:at], ('odom', glitch), *seq[at:]]) + engine.finish()
+    engine, out, expected = _run_with_a_glitch(flight, 'odom', 500, offset_s)
     assert engine.stats.time_jumps == 0
     assert dict(engine.stats.rejected) == {'stamp outlier': 1}
     (rejection,) = engine.take_rejections()
@@ -490,15 +499,7 @@ def test_a_single_odometry_stamp_off_the_timeline_is_an_outlier(flight, offset_s
 def test_a_single_reference_stamp_off_the_timeline_is_an_outlier(flight, offset_s):
     """A reference 5 s before the latest one used to be taken silently, clearing the references;
     it is held aside, and counted as an outlier when the next one continues the timeline."""
-    odoms, refs = messages(flight)
-    odoms, refs = odoms[:800], refs[:400]
-    clean = VehicleEngine(EngineConfig())
-    expected = run(clean, in_time_order(odoms, refs)) + clean.finish()
-    engine = VehicleEngine(EngineConfig())
-    seq = in_time_order(odoms, refs)
-    at = seq.index(('ref', refs[250][1])) + 1
-    glitch = _stamped(refs[250][1], refs[250][0] + round(offset_s * NS))
-    out = run(engine, [*seq[:at], ('ref', glitch), *seq[at:]]) + engine.finish()
+    engine, out, expected = _run_with_a_glitch(flight, 'ref', 250, offset_s)
     assert engine.stats.time_jumps == 0
     assert dict(engine.stats.rejected) == {'reference stamp outlier': 1}
     np.testing.assert_array_equal(

@@ -5,6 +5,8 @@
 * :class:`NodeProcess` starts a node executable on a given domain, captures its output to files
   and stops it with a chosen signal.
 * :func:`spin_until` spins an executor until a condition holds or a timeout passes.
+* :func:`private_domain` gives a test a domain of its own with an rclpy context, a node and an
+  executor on it.
 """
 
 from __future__ import annotations
@@ -16,12 +18,21 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from types import SimpleNamespace
 
 from cloe_ros.cli.processes import param_args, reserve_domain_id
 
-__all__ = ['NodeProcess', 'executable', 'reserve_domain_id', 'ros_env', 'spin_until']
+__all__ = [
+    'NodeProcess',
+    'executable',
+    'private_domain',
+    'reserve_domain_id',
+    'ros_env',
+    'spin_until',
+]
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -121,3 +132,25 @@ def spin_until(executor, condition: Callable[[], bool], timeout: float = 10.0) -
             return True
         executor.spin_once(timeout_sec=0.05)
     return condition()
+
+
+@contextmanager
+def private_domain(node_name: str) -> Iterator[SimpleNamespace]:
+    """A domain of our own (:func:`reserve_domain_id`) with an rclpy context on it, a node named
+    ``node_name`` and a single-threaded executor serving it: ``domain``, ``ctx``, ``node``,
+    ``executor``. All are shut down on exit."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    domain = reserve_domain_id()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node(node_name, context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        yield SimpleNamespace(domain=domain, ctx=ctx, node=node, executor=executor)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

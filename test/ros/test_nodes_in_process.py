@@ -121,6 +121,19 @@ def _odom_bytes(stamp_ns, zeta, frame='world'):
     return messages.encode_odometry(OdometrySample(stamp_ns, frame, 'base_link', p, q, v, w))
 
 
+def _diagnosed(ex, col: Collector, odom_received: int, timeout: float = 10.0) -> bool:
+    """Spin until the last /diagnostics report heard (one vehicle) counts at least
+    ``odom_received`` odometry messages."""
+
+    def counted():
+        if not col.msgs['/diagnostics']:
+            return False
+        _, (st,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+        return int(dict(st.values)['odom_received']) >= odom_received
+
+    return spin_until(ex, counted, timeout=timeout)
+
+
 def _ref_bytes(stamp_ns, r):
     return messages.encode_pose_stamped(
         messages.PoseSample(stamp_ns, 'world', np.array([r[0], r[1], r[3]]),
@@ -163,13 +176,7 @@ def test_bad_inputs_are_rejected_counted_and_reported(context):
                 odom.publish(b'\x00\x01\x00\x00garbage')  # malformed CDR
             spin_until(ex, lambda: False, timeout=0.002)
 
-        def counted():
-            if not col.msgs['/diagnostics']:
-                return False
-            _, (st,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
-            return int(dict(st.values)['odom_received']) >= 204
-
-        assert spin_until(ex, counted, timeout=10)
+        assert _diagnosed(ex, col, odom_received=204)
         spin_until(ex, lambda: False, timeout=0.5)
         _, (status,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
         values = dict(status.values)
@@ -219,13 +226,7 @@ def test_a_plan_before_the_odometry_does_not_set_the_world_frame(context):
             ref.publish(_ref_bytes(stamp, np.array([0.0, 0.0, 0.0, 1.0])))
             spin_until(ex, lambda: False, timeout=0.002)
 
-        def counted():
-            if not col.msgs['/diagnostics']:
-                return False
-            _, (st,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
-            return int(dict(st.values)['odom_received']) >= 100
-
-        assert spin_until(ex, counted, timeout=10)
+        assert _diagnosed(ex, col, odom_received=100)
         _, (status,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
         values = dict(status.values)
         assert values['rejected: plan before the world frame'] == '1'

@@ -37,9 +37,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-from ros_helpers import NodeProcess, reserve_domain_id, spin_until
+from ros_helpers import NodeProcess, private_domain, spin_until
 
 from cloe_ros.cli.infer import infer_bag
 from cloe_ros.io.outputs import PARAMETER_LABELS
@@ -60,29 +58,21 @@ DEPTH = 2000  # history depth of every publisher and subscription: > N_INPUT
 def ros(tmp_path: Path):
     """A domain of our own with an rclpy context on it (for /diagnostics and the graph), and
     ``start`` for node processes (killed at the end if still running)."""
-    domain = reserve_domain_id()
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    node = rclpy.create_node('online_offline_test', context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
     procs: list[NodeProcess] = []
+    with private_domain('online_offline_test') as ros:
 
-    def start(name: str, params: dict, node_name: str | None = None) -> NodeProcess:
-        extra = ['-r', f'__node:={node_name}'] if node_name else None
-        proc = NodeProcess(name, params, domain, tmp_path / 'logs', extra_args=extra)
-        procs.append(proc)
-        return proc
+        def start(name: str, params: dict, node_name: str | None = None) -> NodeProcess:
+            extra = ['-r', f'__node:={node_name}'] if node_name else None
+            proc = NodeProcess(name, params, ros.domain, tmp_path / 'logs', extra_args=extra)
+            procs.append(proc)
+            return proc
 
-    try:
-        yield SimpleNamespace(node=node, executor=executor, counts=RecorderCounts(node),
-                              start=start)  # fmt: skip
-    finally:
-        for proc in reversed(procs):
-            proc.stop(signal.SIGKILL)
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        try:
+            yield SimpleNamespace(node=ros.node, executor=ros.executor,
+                                  counts=RecorderCounts(ros.node), start=start)  # fmt: skip
+        finally:
+            for proc in reversed(procs):
+                proc.stop(signal.SIGKILL)
 
 
 def settings(algorithm: str) -> dict:

@@ -17,15 +17,12 @@ import math
 import re
 import signal
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
-import rclpy
 import yaml
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import REPO, NodeProcess, reserve_domain_id, spin_until
+from ros_helpers import REPO, NodeProcess, private_domain, reserve_domain_id, spin_until
 
 pytestmark = pytest.mark.ros
 
@@ -39,18 +36,8 @@ def logs(proc: NodeProcess) -> str:
 @pytest.fixture
 def ros():
     """A domain of our own with an rclpy context and a node on it, to call parameter services."""
-    domain = reserve_domain_id()
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    node = rclpy.create_node('params_test', context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
-    try:
-        yield SimpleNamespace(domain=domain, node=node, executor=executor)
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+    with private_domain('params_test') as ros:
+        yield ros
 
 
 class Client:

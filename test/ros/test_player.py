@@ -9,18 +9,15 @@ from __future__ import annotations
 
 import signal
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
 from nav_msgs.msg import Odometry
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
-from ros_helpers import NodeProcess, reserve_domain_id, spin_until
+from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
 from rosbags.interfaces import (
     Qos,
     QosDurability,
@@ -69,18 +66,8 @@ def b2_messages() -> dict[str, list[tuple[int, bytes]]]:
 @pytest.fixture
 def ros():
     """An rclpy context of our own on a domain of our own, with a node and an executor."""
-    domain = reserve_domain_id()
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    node = rclpy.create_node('player_test', context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
-    try:
-        yield SimpleNamespace(domain=domain, ctx=ctx, node=node, executor=executor)
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+    with private_domain('player_test') as ros:
+        yield ros
 
 
 class Arrivals:

@@ -17,7 +17,6 @@ import signal
 import struct
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 import rclpy
@@ -31,11 +30,10 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 from nav_msgs.msg import Odometry
 from rclpy.duration import Duration
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from ros_helpers import NodeProcess, reserve_domain_id, spin_until
+from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosDurability, QosReliability
 from rosgraph_msgs.msg import Clock
@@ -55,18 +53,8 @@ MAX_SIGKILL_LOSS = 110  # messages at 100 Hz: 1 s of data plus a small margin
 @pytest.fixture
 def ros():
     """An rclpy context of our own on a domain of our own, with a node and an executor."""
-    domain = reserve_domain_id()
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    node = rclpy.create_node('recorder_test', context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
-    try:
-        yield SimpleNamespace(domain=domain, ctx=ctx, node=node, executor=executor)
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+    with private_domain('recorder_test') as ros:
+        yield ros
 
 
 # -- messages --------------------------------------------------------------------------------

@@ -6,11 +6,9 @@ from __future__ import annotations
 import signal
 
 import pytest
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
-from rclpy.executors import SingleThreadedExecutor
-from ros_helpers import NodeProcess, reserve_domain_id, spin_until
+from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
 from rosgraph_msgs.msg import Clock
 
 from cloe_ros.ros.common import qos
@@ -26,32 +24,25 @@ N_ODOM = round(DURATION * ODOM_RATE) + 1
 def test_sim_with_use_sim_time_publishes_its_clock_and_finishes(tmp_path) -> None:
     """use_sim_time + publish_clock: /odom and /clock come (same stamps, simulated time from a
     system-time origin) and shutdown_when_done ends the process after the duration."""
-    domain = reserve_domain_id()
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain)
-    node = rclpy.create_node('sim_time_probe', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    odom, clock = [], []
-    node.create_subscription(Odometry, '/odom', odom.append, qos(depth=1000))
-    node.create_subscription(Clock, '/clock', clock.append, qos(depth=1000))
-    node.create_subscription(PoseStamped, '/reference', lambda _: None, qos(depth=1000))
-    sim = NodeProcess('quadrotor_sim', {
-        'use_sim_time': True, 'publish_clock': True, 'duration': DURATION,
-        'shutdown_when_done': True, 'real_time_factor': 4.0, 'sim_rate': 500.0,
-        'odom_rate': ODOM_RATE, 'reference_rate': ODOM_RATE, 'publish_truth': False,
-        'wait_for_subscribers': 1,
-    }, domain, tmp_path)  # fmt: skip
-    try:
-        assert spin_until(executor, lambda: sim.proc.poll() is not None, 30.0), sim.output()
-        spin_until(executor, lambda: len(odom) >= N_ODOM, 2.0)
-        assert sim.proc.returncode == 0, sim.output()
-        output = sim.output()
-    finally:
-        sim.stop(signal.SIGKILL)
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
+    with private_domain('sim_time_probe') as ros:
+        odom, clock = [], []
+        ros.node.create_subscription(Odometry, '/odom', odom.append, qos(depth=1000))
+        ros.node.create_subscription(Clock, '/clock', clock.append, qos(depth=1000))
+        ros.node.create_subscription(PoseStamped, '/reference', lambda _: None, qos(depth=1000))
+        sim = NodeProcess('quadrotor_sim', {
+            'use_sim_time': True, 'publish_clock': True, 'duration': DURATION,
+            'shutdown_when_done': True, 'real_time_factor': 4.0, 'sim_rate': 500.0,
+            'odom_rate': ODOM_RATE, 'reference_rate': ODOM_RATE, 'publish_truth': False,
+            'wait_for_subscribers': 1,
+        }, ros.domain, tmp_path)  # fmt: skip
+        try:
+            done = spin_until(ros.executor, lambda: sim.proc.poll() is not None, 30.0)
+            assert done, sim.output()
+            spin_until(ros.executor, lambda: len(odom) >= N_ODOM, 2.0)
+            assert sim.proc.returncode == 0, sim.output()
+            output = sim.output()
+        finally:
+            sim.stop(signal.SIGKILL)
     assert f'done: {DURATION:g} s simulated' in output
     stamps = [m.header.stamp.sec * NS + m.header.stamp.nanosec for m in odom]
     ticks = [m.clock.sec * NS + m.clock.nanosec for m in clock]

@@ -49,14 +49,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from nav_msgs.msg import Odometry
-from rclpy.executors import SingleThreadedExecutor
-from ros_helpers import NodeProcess, reserve_domain_id, spin_until
+from ros_helpers import NodeProcess, private_domain, spin_until
 
 from cloe_ros.core.model import PARAMETER_NAMES
 from cloe_ros.io.dataset import load_flight
@@ -128,34 +126,26 @@ class RecorderCounts:
 def system(tmp_path: Path):
     """A domain of our own, an rclpy context on it (to hear /diagnostics), and ``start`` for
     node processes (killed at the end if still running)."""
-    domain = reserve_domain_id()
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    node = rclpy.create_node('system_test', context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
     procs: list[NodeProcess] = []
+    with private_domain('system_test') as ros:
 
-    def start(name: str, params: dict, node_name: str | None = None) -> NodeProcess:
-        extra = ['-r', f'__node:={node_name}'] if node_name else None
-        proc = NodeProcess(name, params, domain, tmp_path / 'logs', extra_args=extra)
-        procs.append(proc)
-        return proc
+        def start(name: str, params: dict, node_name: str | None = None) -> NodeProcess:
+            extra = ['-r', f'__node:={node_name}'] if node_name else None
+            proc = NodeProcess(name, params, ros.domain, tmp_path / 'logs', extra_args=extra)
+            procs.append(proc)
+            return proc
 
-    try:
-        yield SimpleNamespace(
-            node=node,
-            executor=executor,
-            counts=RecorderCounts(node),
-            start=start,
-            bag=tmp_path / 'bag',
-        )
-    finally:
-        for proc in reversed(procs):
-            proc.stop(signal.SIGKILL)  # (does nothing to a process that has exited)
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        try:
+            yield SimpleNamespace(
+                node=ros.node,
+                executor=ros.executor,
+                counts=RecorderCounts(ros.node),
+                start=start,
+                bag=tmp_path / 'bag',
+            )
+        finally:
+            for proc in reversed(procs):
+                proc.stop(signal.SIGKILL)  # (does nothing to a process that has exited)
 
 
 def logs(proc: NodeProcess) -> str:

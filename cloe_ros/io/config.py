@@ -33,7 +33,6 @@ from cloe_ros.core.estimator import (
 from cloe_ros.core.identifier import IdentifierConfig
 from cloe_ros.core.model import N_STATES
 from cloe_ros.core.prediction import PredictionConfig
-from cloe_ros.errors import CloeError
 from cloe_ros.io.outputs import OutputConfig, OutputConfigError
 
 __all__ = ['ALGORITHMS', 'DEFAULTS', 'RANGES', 'SettingsError', 'build_configs', 'load_settings']
@@ -96,16 +95,10 @@ RANGES: dict[str, tuple[float, float]] = {
 NODE_ONLY = ('vehicles', 'diagnostics_period', 'qos_reliability', 'qos_depth', 'use_sim_time')
 
 
-class SettingsError(CloeError, ValueError):
-    """Inference settings that cannot be used; the message says which and why.
-
-    ``name`` is the setting at fault (None for a whole file) and ``reason`` the message after the
-    name, so a node can report ``parameter '<name>': <reason>``.
-    """
-
-    def __init__(self, reason: str, name: str | None = None) -> None:
-        super().__init__(f'{name} {reason}' if name else reason)
-        self.name, self.reason = name, reason
+#: Inference settings that cannot be used: every invalid setting is a :class:`ConfigError`
+#: (``name`` is the setting at fault, ``reason`` the message after it); kept under this name for
+#: its importers.
+SettingsError = ConfigError
 
 
 def build_configs(values: dict[str, Any]) -> tuple[EngineConfig, OutputConfig]:

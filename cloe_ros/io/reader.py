@@ -28,7 +28,7 @@ from rosbags.rosbag2.metadata import parse_qos
 from rosbags.rosbag2.reader import DirectoryReader
 from rosbags.rosbag2.storage_mcap import McapReader, decompress, read_exact
 
-from cloe_ros.errors import CloeError
+from cloe_ros.io.errors import BagError
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Iterator
@@ -40,10 +40,6 @@ MCAP_MAGIC = b'\x89MCAP0\r\n'
 MCAP_FOOTER_SIZE = 1 + 8 + 20 + len(MCAP_MAGIC)
 STORAGE_SUFFIXES = {'mcap': '.mcap', 'sqlite3': '.db3'}
 NS = 1_000_000_000
-
-
-class BagError(CloeError):
-    """A bag that cannot be read, with a message naming the path and what is wrong."""
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ from rosbags.rosbag2.errors import WriterError as RosbagsWriterError
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
-from cloe_ros.errors import CloeError
+from cloe_ros.io.errors import RecoverError
 from cloe_ros.io.reader import BagError, check_bag
 
 MAGIC = b'\x89MCAP0\r\n'
@@ -81,10 +81,6 @@ _U64 = struct.Struct('<Q')
 _RECORD_HEAD = struct.Struct('<BQ')
 _MESSAGE_HEAD = struct.Struct('<HIQQ')  # channel id, sequence, log time, publish time
 _CHUNK_HEAD = struct.Struct('<QQQI')  # start, end, uncompressed size, uncompressed crc
-
-
-class RecoverError(CloeError):
-    """A bag that cannot be recovered or read (not a bag, no MCAP file, output exists, ...)."""
 
 
 class _Corrupt(Exception):

@@ -25,15 +25,11 @@ from rosbags.rosbag2.errors import ReaderError
 from rosbags.rosbag2.errors import WriterError as RosbagsWriterError
 from rosbags.rosbag2.metadata import parse_qos
 
-from cloe_ros.errors import CloeError
+from cloe_ros.io.errors import WriterError
 from cloe_ros.io.messages import TYPESTORE
 
 #: Values of the ``compression`` argument: MCAP chunk compression with zstd, or none.
 COMPRESSIONS = ('zstd', 'none')
-
-
-class WriterError(CloeError):
-    """A bag that cannot be written (existing path, unknown type, closed writer, ...)."""
 
 
 def _rosbags_version() -> str:

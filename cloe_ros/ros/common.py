@@ -26,6 +26,8 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 
+from cloe_ros.errors import ConfigError
+
 NS = 1_000_000_000
 
 
@@ -63,7 +65,7 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
     return status
 
 
-class ParameterError(ValueError):
+class ParameterError(ConfigError):
     """A parameter value the node cannot start with (reported, exit status 1).
 
     The message is ``parameter '<name>': <reason>`` (the documented form), or the reason alone

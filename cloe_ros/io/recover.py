@@ -700,9 +700,14 @@ class McapScan:
         if len(data) != head.size:
             msg = f'chunk holds {len(data)} bytes once uncompressed, its header says {head.size}'
             raise _Corrupt(msg)
-        if head.crc and zlib.crc32(data) != head.crc:
-            raise _Corrupt('chunk CRC does not match its data')
         records, problem, _ = self._inner_records(data, head)
+        if head.crc and zlib.crc32(data) != head.crc:
+            if not problem and index is not None:  # where the damage is, if the index tells
+                try:
+                    _check_index(records, index)
+                except _Corrupt as err:
+                    problem = str(err)
+            raise _Corrupt('chunk CRC does not match its data' + (f'; {problem}' if problem else ''))
         if problem:
             raise _Corrupt(problem)
         if index is not None and not head.crc:  # a matching CRC vouches for the data

@@ -11,16 +11,19 @@ import errno
 import io
 import os
 import shutil
+import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 from mcap.exceptions import EndOfFile
 from mcap.reader import make_reader
-from mcap.records import Channel, Message
+from mcap.records import Channel, Chunk, DataEnd, Footer, Message
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
+import yaml
 from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import Reader as RosbagsReader
 from rosbags.interfaces import (
     Qos,
     QosDurability,
@@ -157,6 +160,53 @@ def test_round_trip_is_read_back_by_mcap_and_rosbags(tmp_path: Path, compression
     assert [decode_pose_stamped(raw).position[1] for topic, _, raw in got if topic != '/odom'] == [
         float(k) for k in range(10)
     ]
+
+
+@pytest.mark.parametrize('compression', ['zstd', 'none'])
+def test_bags_carry_mcap_crcs(tmp_path: Path, compression: str) -> None:
+    """Every chunk has the CRC of its records, the data section its CRC in DataEnd, the summary
+    its CRC in the footer; the mcap library's reader validates them (rosbags wrote none)."""
+    bag = tmp_path / 'bag'
+    write_sample_bag(bag, compression, n=6000)  # several chunks
+    mcap_file = bag / 'bag.mcap'
+    content = mcap_file.read_bytes()
+    with mcap_file.open('rb') as fh:
+        records = list(StreamReader(fh, emit_chunks=True, validate_crcs=True).records)
+    chunks = [r for r in records if isinstance(r, Chunk)]
+    assert len(chunks) >= 2
+    assert all(c.uncompressed_crc != 0 for c in chunks)
+    (data_end,) = [r for r in records if isinstance(r, DataEnd)]
+    (footer,) = [r for r in records if isinstance(r, Footer)]
+    # independently: the DataEnd record (13 bytes) sits right before the summary
+    assert data_end.data_section_crc == zlib.crc32(content[: footer.summary_start - 13])
+    assert content[footer.summary_start - 13] == 0x0F
+    footer_at = len(content) - 8 - 29
+    assert footer.summary_crc == zlib.crc32(content[footer.summary_start : footer_at + 25])
+    # the library's own checks pass: chunk CRCs on every message read, the data section CRC
+    with mcap_file.open('rb') as fh:
+        n = sum(1 for _ in make_reader(fh, validate_crcs=True).iter_messages())
+    assert n == 6000 + 1500
+    with mcap_file.open('rb') as fh:
+        assert sum(isinstance(r, Message) for r in StreamReader(fh, validate_crcs=True).records) == n
+
+
+def test_metadata_says_jazzy(tmp_path: Path) -> None:
+    """rosbag2 writes the distribution of the message types (rosbags wrote 'rosbags'); the file
+    carries the same metadata, as rosbag2's MCAP storage does."""
+    bag = tmp_path / 'bag'
+    write_sample_bag(bag, 'zstd', n=4)
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert (meta['ros_distro'], meta['version'], meta['storage_identifier']) == ('jazzy', 9, 'mcap')
+    assert meta['message_count'] == 5
+    with RosbagsReader(bag) as reader:
+        assert reader.ros_distro == 'jazzy'
+    with (bag / 'bag.mcap').open('rb') as fh:
+        reader = make_reader(fh)
+        assert reader.get_header().profile == 'ros2'
+        (record,) = list(reader.iter_metadata())
+    assert record.name == 'rosbag2'
+    inner = yaml.safe_load(record.metadata['serialized_metadata'])
+    assert inner == meta
 
 
 def test_counts_and_properties(tmp_path: Path) -> None:

@@ -158,3 +158,52 @@ def read_topics(bag: Path, names: Iterable[str]) -> list[tuple[str, str, list[tu
         for topic, t, raw in reader.messages(wanted):
             msgs[topic].append((t, bytes(raw)))
         return [(n, reader.topics[n].msgtype, msgs[n]) for n in wanted]
+
+
+def flip_inside_compressed_chunk(mcap_file: Path, chunk: int = 1) -> tuple[int, int]:
+    """Flip one bit inside the zstd data of the ``chunk``-th chunk (file order) so that the data
+    still decompress to records of the same layout and size, one message's bytes changed: damage
+    only a CRC can tell. Returns ``(chunk offset, offset of the flipped byte)``; the chunk and its
+    records are found with the mcap library, the data's place from the specification's layout."""
+    import zstandard
+    from mcap.reader import make_reader
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import breakup_chunk
+
+    with mcap_file.open('rb') as fh:
+        index = sorted(
+            make_reader(fh).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset
+        )[chunk]
+    assert index.compression == 'zstd'
+    content = bytearray(mcap_file.read_bytes())
+    # opcode, length; start, end, uncompressed size, crc; compression name; data length
+    start = index.chunk_start_offset + 9 + 28 + 4 + len(index.compression) + 8
+    data = bytes(content[start : start + index.compressed_size])
+
+    def records(raw: bytes) -> list:
+        head = Chunk('', raw, 0, 0, 0, len(raw))
+        return [(type(r), getattr(r, 'channel_id', None), getattr(r, 'log_time', None),
+                 len(getattr(r, 'data', b''))) for r in breakup_chunk(head)]  # fmt: skip
+
+    original = zstandard.ZstdDecompressor().decompress(data)
+    layout = records(original)
+    for at in range(len(data) // 2, len(data)):
+        for bit in (0x01, 0x10, 0x80):
+            flipped = bytearray(data)
+            flipped[at] ^= bit
+            try:
+                out = zstandard.ZstdDecompressor().decompress(bytes(flipped))
+            except zstandard.ZstdError:
+                continue
+            if len(out) != len(original) or out == original:
+                continue
+            try:
+                if records(out) != layout:
+                    continue
+            except Exception:  # noqa: BLE001 - a record head changed: not the damage wanted
+                continue
+            assert any(t is Message for t, *_ in layout)
+            content[start + at] ^= bit
+            mcap_file.write_bytes(bytes(content))
+            return index.chunk_start_offset, start + at
+    raise AssertionError('no bit flip found that leaves the chunk decompressible')

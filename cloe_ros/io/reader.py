@@ -1,51 +1,77 @@
 """Read recorded flights: rosbag2 directories (metadata.yaml + .mcap / .db3) or single .mcap files.
 
-:class:`BagReader` wraps ``rosbags.rosbag2.Reader`` and turns every problem a user can cause (a
-wrong path, a damaged metadata.yaml, a missing or truncated storage file, a corrupt chunk found
-while reading) into a :class:`BagError` whose message names the path, says what is wrong and,
-where there is one, what to do about it. Messages come out as raw CDR bytes in log-time order;
-decoding is :mod:`cloe_ros.io.messages`' job. No rclpy here.
+:class:`BagReader` turns every problem a user can cause (a wrong path, a damaged metadata.yaml, a
+missing or truncated storage file, a corrupt chunk found while reading) into a :class:`BagError`
+whose message names the path, says what is wrong and, where there is one, what to do about it.
+Messages come out as raw CDR bytes in log-time order; decoding is :mod:`cloe_ros.io.messages`'
+job. No rclpy here.
 
-Damage that leaves the records readable is found too: the chunks of an MCAP file are checked
-against the message index the file holds after each of them (rosbags writes no chunk CRC), and at
-the end the messages read are compared with the per-topic counts the bag lists.
+MCAP files are read with the ``mcap`` library's records (:mod:`cloe_ros.io.mcap_records`): the
+summary (schemas, channels, chunk indexes, statistics) when the bag is opened, each chunk when its
+messages are due. The file is what counts, not ``metadata.yaml``:
 
-A single ``.mcap`` file (no metadata.yaml) is read directly: rosbags takes topics, counts and times
-from the file's own summary. sqlite3 (``.db3``) bags work too, because rosbags reads them.
+* topics, types, message counts and times come from the files' summaries; where metadata.yaml
+  says otherwise, :attr:`BagReader.metadata_mismatch` says how (``cloe bag info`` prints it as a
+  warning). Messages metadata.yaml lists beyond those read are an error at the end of reading (the
+  bag may have lost them), more messages than it lists are read;
+* a channel whose message encoding is not ``cdr``, or whose schema is not a ROS 2 message
+  definition, is refused when the bag is opened, naming the topic;
+* the CRCs MCAP defines are checked where the file has them (bags written by this package have
+  all): the summary CRC when the bag is opened, each chunk's CRC when it is read, the data
+  section CRC once every message was read. A chunk without CRC (rosbags writes none) is checked
+  against the message index the file holds after it. Damage names the file, the chunk (its number
+  and byte offset) and the topics whose messages it holds; every message before the chunk is
+  delivered first.
+
+At the end of reading the messages read are also compared with the counts listed, so damage that
+leaves the records readable does not go unseen. rosbags (``rosbags.rosbag2.Reader``) reads the
+bags this path does not: sqlite3 (``.db3``) storage, per-message compression and MCAP files
+without chunk index; their counts come from metadata.yaml.
 """
 
 from __future__ import annotations
 
+import errno
 import heapq
-import struct
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO
 
 import yaml
+from mcap.exceptions import McapError
+from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, Footer, Header, Message, MessageIndex
+from mcap.records import Schema, Statistics
+from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.rosbag2.reader import DirectoryReader
-from rosbags.rosbag2.storage_mcap import McapReader, decompress, read_exact
 
+from cloe_ros.io import mcap_records as mr
 from cloe_ros.io.errors import BagError
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Iterator
 
-    from rosbags.interfaces import Connection, Qos
+    from rosbags.interfaces import Qos
 
-MCAP_MAGIC = b'\x89MCAP0\r\n'
+__all__ = ['BagError', 'BagReader', 'TopicInfo', 'check_bag', 'missing_message', 'qos_profiles']
+
+MCAP_MAGIC = mr.MAGIC
 #: An MCAP file ends with a footer record (opcode 0x02, 20 bytes of content) and the magic.
-MCAP_FOOTER_SIZE = 1 + 8 + 20 + len(MCAP_MAGIC)
+MCAP_FOOTER_SIZE = mr.FOOTER_SIZE + mr.MAGIC_SIZE
 STORAGE_SUFFIXES = {'mcap': '.mcap', 'sqlite3': '.db3'}
 NS = 1_000_000_000
+#: Schema encodings that carry a ROS 2 message definition (MCAP ``ros2`` profile, and what
+#: rosbag2 writes for IDL-only types).
+ROS2_SCHEMA_ENCODINGS = ('ros2msg', 'ros2idl', 'omgidl')
 
 
 @dataclass(frozen=True)
 class TopicInfo:
     """One recorded topic.
 
+    ``count`` is the number of messages the bag's storage holds (for MCAP, its summary).
     ``offered_qos`` is the QoS of the recorded publishers as stored in the bag: a YAML list of
     profiles (rosbag2's ``offered_qos_profiles``), or ``''`` when none was recorded. Parse it with
     :func:`qos_profiles`.
@@ -68,13 +94,320 @@ def qos_profiles(offered_qos: str) -> list[Qos]:
         raise BagError(msg) from err
 
 
+def missing_message(path: Path) -> str:
+    """Why ``path`` cannot be used although a path was given: it does not exist, it is a
+    symbolic link loop or a broken link, or it cannot be reached."""
+    try:
+        os.stat(path)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            return f'{path}: too many levels of symbolic links (a symbolic link loop)'
+        if os.path.islink(path):
+            return f'{path} is a broken symbolic link (to {os.readlink(path)}, which does not exist)'
+        if err.errno in (errno.ENOENT, errno.ENOTDIR):
+            return f'{path} does not exist'
+        return f'cannot access {path}: {err.strerror or err}'
+    return f'{path} does not exist'
+
+
+# -- MCAP files --------------------------------------------------------------------------------
+
+
+@dataclass
+class McapFile:
+    """What the summary of one complete MCAP file says, read with the mcap library.
+
+    ``path`` is the file read (a temporary copy for a whole-file compressed bag) and ``label``
+    the one to name in messages. ``channel_counts`` and the times come from the statistics, or
+    (without them) from the message indexes or a scan of the file. ``data_end`` is the offset of
+    the ``DataEnd`` record (the data section lies before it) and ``data_crc`` its CRC (0: none).
+    """
+
+    path: Path
+    label: Path
+    header: Header
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    chunk_indexes: list[ChunkIndex] = field(default_factory=list)
+    channel_counts: dict[int, int] = field(default_factory=dict)
+    start_ns: int = 0
+    end_ns: int = 0
+    data_end: int | None = None
+    data_crc: int = 0
+    data_crc_checked: bool = False
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.channel_counts.values())
+
+
+def _read_exact(fh: BinaryIO, size: int, what: str, file: Path) -> bytes:
+    data = fh.read(size)
+    if len(data) != size:
+        msg = f'{file}: {what} is cut off by the end of the file'
+        raise BagError(msg)
+    return data
+
+
+def _record_at(fh: BinaryIO, offset: int, size: int, what: str, file: Path) -> tuple[int, bytes]:
+    """``(opcode, body)`` of the record at ``offset`` of a file of ``size`` bytes."""
+    fh.seek(offset)
+    op, length = mr.read_head(_read_exact(fh, mr.RECORD_HEAD_SIZE, what, file))
+    if length > size - offset - mr.RECORD_HEAD_SIZE:
+        msg = f'{file}: {what} at byte {offset} overruns the file: the file is damaged'
+        raise BagError(msg)
+    return op, _read_exact(fh, length, what, file)
+
+
+def read_mcap_summary(file: Path, bag: Path, label: Path | None = None) -> McapFile:
+    """The summary of a complete ``.mcap`` (footer and magic checked first), its summary CRC
+    checked, its channels checked to be ROS 2 CDR; :class:`BagError` naming the problem."""
+    label = label or file
+    _check_mcap_file(file, bag, label)
+    try:
+        with file.open('rb') as fh:
+            return _read_summary_of(fh, file, file.stat().st_size, bag, label)
+    except OSError as err:
+        msg = f'cannot read {label}: {err.strerror or err}'
+        raise BagError(msg) from err
+
+
+def _read_summary_of(fh: BinaryIO, file: Path, size: int, bag: Path, label: Path) -> McapFile:
+    damaged = f'the file is damaged; `cloe bag recover {bag}` writes a bag with what can be read'
+    try:
+        op, body = _record_at(fh, mr.MAGIC_SIZE, size, 'the header record', label)
+        header = mr.parse_record(op, body) if op == mr.Opcode.HEADER else None
+        footer_at = size - mr.MAGIC_SIZE - mr.FOOTER_SIZE
+        op, body = _record_at(fh, footer_at, size, 'the footer', label)
+        footer = mr.parse_record(op, body) if op == mr.Opcode.FOOTER else None
+    except mr.RecordError as err:
+        msg = f'{label}: its header or footer record does not parse ({err}): {damaged}'
+        raise BagError(msg) from err
+    if not isinstance(header, Header):
+        msg = f'{label}: its first record is not an MCAP header: {damaged}'
+        raise BagError(msg)
+    if not isinstance(footer, Footer):
+        msg = f'{label}: it ends with the MCAP magic but without a footer record: {damaged}'
+        raise BagError(msg)
+    if header.profile != 'ros2':
+        msg = (
+            f'{label}: its MCAP profile is {header.profile!r}, not ros2: it is not a ROS 2 '
+            'recording'
+        )
+        raise BagError(msg)
+    out = McapFile(file, label, header)
+    data_start = mr.MAGIC_SIZE
+    if footer.summary_start:
+        if not data_start < footer.summary_start <= footer_at:
+            msg = f'{label}: its footer points outside the file ({footer.summary_start}): {damaged}'
+            raise BagError(msg)
+        fh.seek(footer.summary_start)
+        summary = _read_exact(fh, footer_at - footer.summary_start, 'the summary', label)
+        if footer.summary_crc:
+            crc = mr.crc_of_range(fh, footer.summary_start, footer_at + mr.FOOTER_CRC_PREFIX)
+            if crc != footer.summary_crc:
+                msg = (
+                    f'{label}: its summary (the index at the end of the file) does not match '
+                    f'its CRC (CRC-32 {crc:#010x}, the footer records {footer.summary_crc:#010x}): '
+                    f'{damaged}'
+                )
+                raise BagError(msg)
+        statistics = None
+        try:
+            for _, op, body in mr.iter_records(summary):
+                record = mr.parse_record(op, body)
+                if isinstance(record, Schema):
+                    out.schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    out.channels[record.id] = record
+                elif isinstance(record, ChunkIndex):
+                    out.chunk_indexes.append(record)
+                elif isinstance(record, Statistics):
+                    statistics = record
+        except mr.RecordError as err:
+            msg = f'{label}: its summary (the index at the end of the file) is damaged ({err}): '
+            raise BagError(msg + damaged) from err
+        out.chunk_indexes.sort(key=lambda c: c.chunk_start_offset)
+        data_end = footer.summary_start - mr.DATA_END_SIZE
+        if statistics is not None:
+            out.channel_counts = {c: n for c, n in statistics.channel_message_counts.items() if n}
+            if statistics.message_count:
+                out.start_ns = statistics.message_start_time
+                out.end_ns = statistics.message_end_time
+        elif out.chunk_indexes:
+            _count_from_message_indexes(fh, size, out)
+        else:
+            _scan_counts(fh, out, damaged)
+    else:
+        data_end = footer_at - mr.DATA_END_SIZE
+        _scan_counts(fh, out, damaged)
+    if data_end >= data_start:
+        fh.seek(data_end)
+        raw = fh.read(mr.DATA_END_SIZE)
+        if len(raw) == mr.DATA_END_SIZE and mr.read_head(raw) == (mr.Opcode.DATA_END, 4):
+            record = mr.parse_record(mr.Opcode.DATA_END, raw[mr.RECORD_HEAD_SIZE :])
+            assert isinstance(record, DataEnd)
+            out.data_end, out.data_crc = data_end, record.data_section_crc
+    _check_channels(out)
+    return out
+
+
+def _count_from_message_indexes(fh: BinaryIO, size: int, out: McapFile) -> None:
+    """Counts and times of a summary without statistics: from the chunks' message indexes."""
+    counts: dict[int, int] = {}
+    for chunk in out.chunk_indexes:
+        for cid, offset in chunk.message_index_offsets.items():
+            op, body = _record_at(fh, offset, size, 'a message index', out.label)
+            record = mr.parse_record(op, body) if op == mr.Opcode.MESSAGE_INDEX else None
+            if isinstance(record, MessageIndex):
+                counts[cid] = counts.get(cid, 0) + len(record.records)
+    out.channel_counts = {c: n for c, n in counts.items() if n}
+    if out.chunk_indexes and out.channel_counts:
+        out.start_ns = min(c.message_start_time for c in out.chunk_indexes)
+        out.end_ns = max(c.message_end_time for c in out.chunk_indexes)
+
+
+def _scan_counts(fh: BinaryIO, out: McapFile, damaged: str) -> None:
+    """Declarations, counts and times of a file without summary: read from its records."""
+    fh.seek(0)
+    counts: dict[int, int] = {}
+    times: list[int] = []
+    try:
+        for record in StreamReader(fh, skip_magic=False).records:
+            if isinstance(record, Schema):
+                out.schemas.setdefault(record.id, record)
+            elif isinstance(record, Channel):
+                out.channels.setdefault(record.id, record)
+            elif isinstance(record, Message):
+                counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+                times.append(record.log_time)
+    except (McapError, ValueError, OSError, UnicodeDecodeError) as err:
+        msg = f'{out.label}: its records do not parse ({_text(err)}): {damaged}'
+        raise BagError(msg) from err
+    out.channel_counts = counts
+    if times:
+        out.start_ns, out.end_ns = min(times), max(times)
+
+
+def _check_channels(mcap: McapFile) -> None:
+    """Every channel carries ROS 2 CDR with a ROS 2 message definition as its schema."""
+    for channel in mcap.channels.values():
+        topic = channel.topic
+        if channel.message_encoding != 'cdr':
+            msg = (
+                f'{mcap.label}: topic {topic} is encoded as {channel.message_encoding!r}; only '
+                'cdr (ROS 2 CDR, what rosbag2 records) can be read'
+            )
+            raise BagError(msg)
+        schema = mcap.schemas.get(channel.schema_id)
+        if schema is None:
+            what = 'has no schema' if channel.schema_id == 0 else (
+                f'refers to schema {channel.schema_id}, which the file does not hold')  # fmt: skip
+            msg = f'{mcap.label}: topic {topic} {what}: its message type is unknown'
+            raise BagError(msg)
+        if schema.encoding not in ROS2_SCHEMA_ENCODINGS:
+            msg = (
+                f'{mcap.label}: topic {topic} has a schema ({schema.name}) in encoding '
+                f'{schema.encoding!r}; expected a ROS 2 message definition '
+                f'({", ".join(ROS2_SCHEMA_ENCODINGS)})'
+            )
+            raise BagError(msg)
+
+
+class _Damage(ValueError):
+    """Chunk data that contradict themselves, their CRC or the file's index (internal)."""
+
+
+def _read_chunk(
+    fh: BinaryIO, size: int, index: ChunkIndex, wanted: dict[int, str]
+) -> list[tuple[int, str, bytes]]:
+    """The messages of the chunk ``index`` points at whose channel is in ``wanted`` (id ->
+    topic), as ``(log time, topic, raw)`` in log-time order (recorded order for equal times).
+    The chunk's header must agree with the summary's index of it, its records must decompress to
+    the size and CRC it states, every record must parse, every message lie in the chunk's time
+    range, and (a chunk without CRC) its messages must be those the message index lists."""
+    try:
+        op, body = _record_at(fh, index.chunk_start_offset, size, 'the chunk', Path())
+    except BagError as err:
+        raise _Damage('The chunk is cut off by the end of the file.') from err
+    if op != mr.Opcode.CHUNK or mr.RECORD_HEAD_SIZE + len(body) != index.chunk_length:
+        msg = (
+            f'The record there ({mr.opcode_name(op)}, {len(body)} bytes) is not the chunk the '
+            'summary lists.'
+        )
+        raise _Damage(msg)
+    try:
+        chunk = mr.parse_record(op, body)
+        assert isinstance(chunk, Chunk)
+        header = (chunk.message_start_time, chunk.message_end_time, chunk.uncompressed_size,
+                  chunk.compression, len(chunk.data))  # fmt: skip
+        listed = (index.message_start_time, index.message_end_time, index.uncompressed_size,
+                  index.compression, index.compressed_size)  # fmt: skip
+        if header != listed:
+            msg = (
+                "Its header (times, sizes, compression) disagrees with the summary's index of it: "
+                f'{header} against {listed}.'
+            )
+            raise _Damage(msg)
+        data = mr.chunk_records(chunk)
+        found: set[tuple[int, int, int]] = set()
+        out: list[tuple[int, str, bytes]] = []
+        for pos, op, rec in mr.iter_records(data):
+            if not mr.known_opcode(op):
+                raise _Damage(f'Invalid record opcode 0x{op:02x} at {pos} inside the chunk.')
+            if op != mr.Opcode.MESSAGE:
+                continue
+            message = mr.parse_record(op, rec)
+            assert isinstance(message, Message)
+            log_ns = message.log_time
+            if not chunk.message_start_time <= log_ns <= chunk.message_end_time:
+                msg = f"A message logged at {log_ns} ns lies outside the chunk's time range."
+                raise _Damage(msg)
+            found.add((message.channel_id, log_ns, pos))
+            topic = wanted.get(message.channel_id)
+            if topic is not None:
+                out.append((log_ns, topic, message.data))
+    except mr.RecordError as err:
+        raise _Damage(str(err)[:1].upper() + str(err)[1:]) from err
+    if not chunk.uncompressed_crc:  # a matching CRC vouches for the data; without one the index
+        indexed = _chunk_index(fh, size, index)
+        if found != indexed:
+            msg = (
+                f'Its messages differ from the message index: {len(indexed - found)} of '
+                f'{len(indexed)} indexed messages not found, {len(found - indexed)} not indexed.'
+            )
+            raise _Damage(msg)
+    out.sort(key=lambda m: m[0])
+    return out
+
+
+def _chunk_index(fh: BinaryIO, size: int, index: ChunkIndex) -> set[tuple[int, int, int]]:
+    """``(channel, log time, offset)`` of every message the chunk's message index records list."""
+    out: set[tuple[int, int, int]] = set()
+    for cid, offset in index.message_index_offsets.items():
+        try:
+            op, body = _record_at(fh, offset, size, 'a message index', Path())
+            record = mr.parse_record(op, body) if op == mr.Opcode.MESSAGE_INDEX else None
+        except (BagError, mr.RecordError):
+            record = None
+        if not isinstance(record, MessageIndex) or record.channel_id != cid:
+            raise _Damage(f'The message index record of channel {cid} is damaged.')
+        out.update((cid, t, o) for t, o in record.records)
+    return out
+
+
+# -- the reader --------------------------------------------------------------------------------
+
+
 class BagReader:
     """A recorded bag, opened with ``with BagReader(path) as bag:`` (or ``open()``/``close()``).
 
     After opening: ``topics`` (name -> :class:`TopicInfo`), ``start_ns`` / ``end_ns`` (log time of
     the first / last message, int ns since the epoch; both 0 for a bag without messages),
-    ``duration_s`` (``end_ns - start_ns`` in s), ``message_count`` and ``custom_data`` (the
-    ``custom_data`` of ``metadata.yaml``; empty for a single storage file or when there is none).
+    ``duration_s`` (``end_ns - start_ns`` in s), ``message_count``, ``custom_data`` (the
+    ``custom_data`` of ``metadata.yaml``; empty for a single storage file or when there is none),
+    ``files`` (the storage files) and ``metadata_mismatch`` (what metadata.yaml says that the
+    files contradict, one sentence each; empty when they agree or there is no metadata.yaml).
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -85,6 +418,14 @@ class BagReader:
         self.duration_s = 0.0
         self.message_count = 0
         self.custom_data: dict[str, str] = {}
+        self.files: list[Path] = []
+        self.storage = ''
+        self.compression_mode = ''
+        self.metadata_mismatch: list[str] = []
+        #: messages per topic the bag lists (the larger of metadata.yaml's and the file's count)
+        self.listed_counts: dict[str, int] = {}
+        self._mcap: list[McapFile] | None = None
+        self._metadata_counts: dict[str, int] = {}
         self._reader: Reader | None = None
 
     # -- opening -------------------------------------------------------------------------------
@@ -102,6 +443,12 @@ class BagReader:
             msg = f'{self.path}: cannot open the bag: {_text(err)}'
             raise BagError(msg) from err
         try:
+            if self._mcap is None and self.storage == 'mcap':  # whole-file compressed
+                storage = reader.storage
+                parts = storage.storages if isinstance(storage, DirectoryReader) else [storage]
+                self._mcap = [
+                    read_mcap_summary(Path(p.path), self.path, label=self.path) for p in parts
+                ]
             self._read_summary(reader, metadata)
         except BaseException:
             reader.close()
@@ -121,17 +468,19 @@ class BagReader:
         self.close()
 
     def _check_layout(self) -> dict[str, Any] | None:
-        """Everything that can be checked before rosbags opens the bag; the parsed metadata
-        (``None`` for a single storage file)."""
+        """Everything that can be checked before rosbags opens the bag (the path, metadata.yaml,
+        each MCAP file's magic, footer and summary); the parsed metadata (``None`` for a single
+        storage file)."""
         path = self.path
         if not path.exists():
-            msg = f'{path} does not exist'
-            raise BagError(msg)
+            raise BagError(missing_message(path))
         if path.is_file():
             if path.suffix == '.mcap':
-                _check_mcap_file(path, path)
+                self.files, self.storage = [path], 'mcap'
+                self._mcap = [read_mcap_summary(path, path)]
                 return None
             if path.suffix == '.db3':
+                self.files, self.storage = [path], 'sqlite3'
                 return None
             if path.name == 'metadata.yaml':
                 msg = f'{path} is the metadata of a bag: pass its directory {path.parent} instead'
@@ -146,34 +495,59 @@ class BagReader:
             raise BagError(msg)
         metapath = path / 'metadata.yaml'
         if not metapath.exists():
+            if os.path.lexists(metapath):
+                raise BagError(missing_message(metapath))
             raise BagError(_no_metadata_message(path))
         metadata = _load_metadata(metapath, path)
-        storage = metadata['storage_identifier']
+        self.storage = storage = metadata['storage_identifier']
+        self.compression_mode = metadata['compression_mode']
+        mcap = []
+        self.files = []
         for name in metadata['relative_file_paths']:
             file = path / Path(name).name
+            self.files.append(file)
             if not file.exists():
+                if os.path.lexists(file):
+                    raise BagError(missing_message(file))
                 msg = (
                     f'{path}: storage file {Path(name).name} listed in metadata.yaml is missing '
                     '(was the bag copied incompletely?)'
                 )
                 raise BagError(msg)
             if storage == 'mcap' and not metadata['compression_mode'] == 'file':
-                _check_mcap_file(file, path)
+                mcap.append(read_mcap_summary(file, path))
+        self._mcap = mcap if storage == 'mcap' and metadata['compression_mode'] != 'file' else None
         return metadata
 
     def _read_summary(self, reader: Reader, metadata: dict[str, Any] | None) -> None:
-        """Fill ``topics``, times and count from an open rosbags reader."""
+        """Fill ``topics``, times and counts: from the MCAP files' summaries, else from rosbags
+        (metadata.yaml); compare them with metadata.yaml."""
         stored_qos: dict[str, str] = {}
         custom = metadata.get('custom_data') if metadata is not None else None
         self.custom_data = (
             {str(k): str(v) for k, v in custom.items()} if isinstance(custom, dict) else {}
         )
+        meta_types: dict[str, str] = {}
         if metadata is not None:
             for entry in metadata['topics_with_message_count']:
                 meta = entry['topic_metadata']
                 stored_qos[meta['name']] = _qos_text(meta.get('offered_qos_profiles', ''))
+                meta_types[meta['name']] = meta['type']
+                self._metadata_counts[meta['name']] = (
+                    self._metadata_counts.get(meta['name'], 0) + entry['message_count']
+                )
+        if self._mcap is None:
+            self._summary_from_rosbags(reader, stored_qos)
         else:
-            stored_qos = _mcap_channel_qos(reader)
+            self._summary_from_files(self._mcap, stored_qos, meta_types)
+        if metadata is not None and self._mcap is not None:
+            self.metadata_mismatch = self._mismatch(metadata, meta_types)
+        self.listed_counts = {
+            t: max(info.count, self._metadata_counts.get(t, 0)) for t, info in self.topics.items()
+        }
+        self.duration_s = (self.end_ns - self.start_ns) / NS
+
+    def _summary_from_rosbags(self, reader: Reader, stored_qos: dict[str, str]) -> None:
         topics: dict[str, TopicInfo] = {}
         for name, info in reader.topics.items():
             if info.msgtype is None:
@@ -188,7 +562,63 @@ class BagReader:
             self.end_ns = reader.end_time - 1  # rosbags' end_time is exclusive
         else:
             self.start_ns = self.end_ns = 0
-        self.duration_s = (self.end_ns - self.start_ns) / NS
+
+    def _summary_from_files(
+        self, files: list[McapFile], stored_qos: dict[str, str], meta_types: dict[str, str]
+    ) -> None:
+        types: dict[str, set[str]] = {}
+        counts: dict[str, int] = {}
+        channel_qos: dict[str, str] = {}
+        for mcap in files:
+            for cid, channel in mcap.channels.items():
+                topic = channel.topic
+                types.setdefault(topic, set()).add(mcap.schemas[channel.schema_id].name)
+                counts[topic] = counts.get(topic, 0) + mcap.channel_counts.get(cid, 0)
+                text = _qos_text(channel.metadata.get('offered_qos_profiles', ''))
+                if text and topic not in channel_qos:
+                    channel_qos[topic] = text
+        for topic, msgtype in meta_types.items():  # listed by metadata.yaml, without a channel
+            types.setdefault(topic, {msgtype})
+            counts.setdefault(topic, 0)
+        topics = {}
+        for name, found in types.items():
+            if len(found) > 1:
+                msg = f'{self.path}: topic {name} is recorded with several types {sorted(found)}'
+                raise BagError(msg)
+            qos = stored_qos.get(name) or channel_qos.get(name, '')
+            topics[name] = TopicInfo(name, found.pop(), counts[name], qos)
+        self.topics = dict(sorted(topics.items()))
+        self.message_count = sum(counts.values())
+        spans = [(m.start_ns, m.end_ns) for m in files if m.message_count]
+        if spans:
+            self.start_ns = min(s for s, _ in spans)
+            self.end_ns = max(e for _, e in spans)
+        else:
+            self.start_ns = self.end_ns = 0
+
+    def _mismatch(self, metadata: dict[str, Any], meta_types: dict[str, str]) -> list[str]:
+        """Where metadata.yaml and the files disagree, one sentence each."""
+        out = []
+        files = ', '.join(f.name for f in self.files)
+        for name, info in self.topics.items():
+            if name not in meta_types:
+                out.append(f'{name} ({info.count} messages) is in {files} but not in metadata.yaml')
+                continue
+            if meta_types[name] != info.msgtype:
+                out.append(
+                    f'metadata.yaml says {name} is {meta_types[name]}, {files} says {info.msgtype}'
+                )
+            listed = self._metadata_counts.get(name, 0)
+            if listed != info.count:
+                out.append(
+                    f'metadata.yaml lists {listed} messages of {name}, {files} holds {info.count}'
+                )
+        listed = metadata['message_count']
+        if not out and listed != self.message_count:
+            out.append(
+                f'metadata.yaml lists {listed} messages in all, {files} holds {self.message_count}'
+            )
+        return out
 
     # -- messages ------------------------------------------------------------------------------
 
@@ -198,7 +628,7 @@ class BagReader:
         ``topics`` selects topics (``None``: all); names the bag does not hold are ignored, so
         check :attr:`topics` first where a topic is required. Messages of one topic keep their
         recorded order. Damaged data found on the way raises :class:`BagError` naming the file,
-        the chunk's byte offset and its topics where the storage tells them.
+        the chunk's number, byte offset and topics where the storage tells them.
         """
         if self._reader is None:
             msg = f'{self.path} is not open: use `with BagReader(path) as bag:`'
@@ -209,18 +639,13 @@ class BagReader:
         return self._messages(self._reader, wanted)
 
     def _messages(self, reader: Reader, wanted: set[str]) -> Iterator[tuple[str, int, bytes]]:
-        storage = reader.storage
-        parts = storage.storages if isinstance(storage, DirectoryReader) else [storage]
-        if reader.compression_mode != 'message' and all(
-            isinstance(p, McapReader) and p.chunks for p in parts
+        files = self._mcap
+        if (
+            files is not None
+            and reader.compression_mode != 'message'
+            and all(f.chunk_indexes or not f.message_count for f in files)
         ):
-            # a file-compressed bag is read from temporary copies: name the bag, not them
-            named = reader.compression_mode != 'file'
-            source = (
-                item
-                for part in parts
-                for item in self._mcap_chunk_messages(part, wanted, part.path if named else None)
-            )
+            source = (item for f in files for item in self._mcap_chunk_messages(f, wanted))
         else:
             source = self._guarded(reader, wanted)
         counts = dict.fromkeys(wanted, 0)
@@ -228,22 +653,48 @@ class BagReader:
             counts[item[0]] += 1
             yield item
         self._check_counts(counts)
+        for f in files or ():
+            self._check_data_crc(f)
 
     def _check_counts(self, counts: dict[str, int]) -> None:
         """Every message the bag lists was read: damage that leaves the records readable (a
-        message whose header was overwritten, say) drops messages without an error on the way."""
-        short = {t: n for t, n in sorted(counts.items()) if n < self.topics[t].count}
+        message whose header was overwritten, say) drops messages without an error on the way,
+        and messages metadata.yaml lists beyond what the files hold may have been lost."""
+        listed = self.listed_counts
+        short = {t: n for t, n in sorted(counts.items()) if n < listed[t]}
         if not short:
             return
-        where = 'its summary' if self.path.is_file() else 'metadata.yaml'
-        missing = sum(self.topics[t].count - n for t, n in short.items())
-        detail = ', '.join(f'{t} {n} of {self.topics[t].count}' for t, n in short.items())
+        by_metadata = any(self._metadata_counts.get(t, 0) > self.topics[t].count for t in short)
+        where = 'metadata.yaml' if by_metadata or not self.path.is_file() else 'its summary'
+        missing = sum(listed[t] - n for t, n in short.items())
+        detail = ', '.join(f'{t} {n} of {listed[t]}' for t, n in short.items())
         msg = (
             f'{self.path}: {missing} of the messages {where} lists could not be read ({detail} '
             'read): the bag is damaged. `cloe bag recover` writes a bag with every message that '
             'can still be read.'
         )
         raise BagError(msg)
+
+    def _check_data_crc(self, mcap: McapFile) -> None:
+        """The data section CRC of the ``DataEnd`` record, once per file (reads the file)."""
+        if not mcap.data_crc or mcap.data_crc_checked or mcap.data_end is None:
+            return
+        try:
+            with mcap.path.open('rb') as fh:
+                crc = mr.crc_of_range(fh, 0, mcap.data_end)
+        except OSError as err:
+            msg = f'cannot read {mcap.label}: {err.strerror or err}'
+            raise BagError(msg) from err
+        if crc != mcap.data_crc:
+            msg = (
+                f'{mcap.label}: its data section does not match its CRC (CRC-32 {crc:#010x}, its '
+                f'DataEnd record says {mcap.data_crc:#010x}), although every chunk matched its '
+                'own: bytes outside the messages were changed (a message index, a chunk header '
+                f'or a declaration). The file is damaged; `cloe bag recover {self.path}` writes a '
+                'bag with every message that can still be read.'
+            )
+            raise BagError(msg)
+        mcap.data_crc_checked = True
 
     def _guarded(self, reader: Reader, wanted: set[str]) -> Iterator[tuple[str, int, bytes]]:
         """rosbags' own iteration, errors translated (sqlite3, unindexed MCAP, compression)."""
@@ -266,150 +717,82 @@ class BagReader:
             raise BagError(msg) from err
 
     def _mcap_chunk_messages(
-        self, part: McapReader, wanted: set[str], file: Path | None
+        self, mcap: McapFile, wanted: set[str]
     ) -> Iterator[tuple[str, int, bytes]]:
-        """Merge the chunks of an indexed MCAP file by log time (ties: file order), as rosbags
-        does, but with each chunk read and checked here, so that damage names the chunk. When a
-        chunk cannot be read, every message that comes before its start in that order is still
-        delivered, then the error is raised."""
-        channel_map: dict[int, Connection] = {
-            c.id: c for c in part.connections if c.topic in wanted
-        }
+        """Merge the chunks of an indexed MCAP file by log time (ties: file order), each chunk
+        read and checked here, so that damage names the chunk. When a chunk cannot be read, every
+        message that comes before its start in that order is still delivered, then the error is
+        raised."""
+        channels = {cid: c.topic for cid, c in mcap.channels.items() if c.topic in wanted}
+        numbers = {c.chunk_start_offset: k + 1 for k, c in enumerate(mcap.chunk_indexes)}
         chunks = [
-            chunk
-            for chunk in part.chunks
-            if any(chunk.channel_count.get(cid, 0) for cid in channel_map)
+            c
+            for c in mcap.chunk_indexes
+            if not c.message_index_offsets or any(cid in channels for cid in c.message_index_offsets)
         ]
-        # (log time, chunk offset, chunk, sequence in the chunk (-1: its start), connection, raw)
+        # (log time, chunk offset, chunk, sequence in the chunk (-1: its start), topic, raw)
         heap: list[tuple] = [
             (c.message_start_time, c.chunk_start_offset, i, -1, None, None)
             for i, c in enumerate(chunks)
         ]
         heapq.heapify(heap)
-        pending: dict[int, Iterator[tuple[int, tuple[int, Connection, bytes]]]] = {}
+        pending: dict[int, Iterator[tuple[int, tuple[int, str, bytes]]]] = {}
         error: BagError | None = None
         limit: tuple[int, int] | None = None  # the start of the earliest chunk that failed
-        while heap and (limit is None or heap[0][:2] < limit):
-            log_ns, offset, i, seq, conn, raw = heapq.heappop(heap)
-            if seq < 0:
-                try:
-                    pending[i] = enumerate(
-                        self._chunk(part, chunks[i], channel_map, file or self.path)
-                    )
-                except BagError as err:
-                    if limit is None or (log_ns, offset) < limit:
-                        limit, error = (log_ns, offset), err
-                    continue
-            else:
-                yield conn.topic, log_ns, raw
-            nxt = next(pending[i], None)
-            if nxt is None:
-                del pending[i]
-            else:
-                seq, (log_ns, conn, raw) = nxt
-                heapq.heappush(heap, (log_ns, offset, i, seq, conn, raw))
+        try:
+            fh = mcap.path.open('rb')
+        except OSError as err:
+            msg = f'cannot read {mcap.label}: {err.strerror or err}'
+            raise BagError(msg) from err
+        with fh:
+            size = os.fstat(fh.fileno()).st_size
+            while heap and (limit is None or heap[0][:2] < limit):
+                log_ns, offset, i, seq, topic, raw = heapq.heappop(heap)
+                if seq < 0:
+                    try:
+                        found = self._chunk(fh, size, mcap, chunks[i], channels, numbers)
+                    except BagError as err:
+                        if limit is None or (log_ns, offset) < limit:
+                            limit, error = (log_ns, offset), err
+                        continue
+                    pending[i] = enumerate(found)
+                else:
+                    yield topic, log_ns, raw
+                nxt = next(pending[i], None)
+                if nxt is None:
+                    del pending[i]
+                else:
+                    seq, (log_ns, topic, raw) = nxt
+                    heapq.heappush(heap, (log_ns, offset, i, seq, topic, raw))
         if error is not None:
             raise error
 
     def _chunk(
-        self, part: McapReader, chunk: Any, channel_map: dict[int, Connection], file: Path
-    ) -> list[tuple[int, Connection, bytes]]:
+        self,
+        fh: BinaryIO,
+        size: int,
+        mcap: McapFile,
+        index: ChunkIndex,
+        channels: dict[int, str],
+        numbers: dict[int, int],
+    ) -> list[tuple[int, str, bytes]]:
         """The wanted messages of one chunk in log-time order; :class:`BagError` naming the chunk
         if it is damaged."""
         try:
-            assert part.bio is not None
-            return _read_chunk(part.bio, chunk, channel_map)
-        except Exception as err:  # damaged chunk
-            topics = sorted(
-                {channel_map[cid].topic for cid in chunk.channel_count if cid in channel_map}
-            )
-            t0 = (chunk.message_start_time - self.start_ns) / NS
-            t1 = (chunk.message_end_time - self.start_ns) / NS
+            return _read_chunk(fh, size, index, channels)
+        except (_Damage, OSError) as err:  # damaged chunk
+            topics = sorted({channels[c] for c in index.message_index_offsets if c in channels})
+            t0 = (index.message_start_time - self.start_ns) / NS
+            t1 = (index.message_end_time - self.start_ns) / NS
+            number = numbers[index.chunk_start_offset]
             msg = (
-                f'{file}: corrupt chunk at byte offset '
-                f'{chunk.chunk_start_offset} (messages of {", ".join(topics)} logged {t0:.3f}-'
-                f'{t1:.3f} s into the bag): {_text(err)} The file is damaged; the messages '
-                'before this chunk were read.'
+                f'{mcap.label}: corrupt chunk at byte offset {index.chunk_start_offset} '
+                f'(messages of {", ".join(topics) or "unknown topics"} logged {t0:.3f}-{t1:.3f} s '
+                f'into the bag): {_text(err)} It is chunk {number} of '
+                f'{len(mcap.chunk_indexes)} in the file. The file is damaged; the messages before '
+                'this chunk were read.'
             )
             raise BagError(msg) from err
-
-
-# -- MCAP chunks ---------------------------------------------------------------------------------
-
-_RECORD_HEAD = struct.Struct('<BQ')
-_MESSAGE_HEAD = struct.Struct('<HIQQ')  # channel id, sequence, log time, publish time
-_INDEX_ENTRY = struct.Struct('<QQ')  # log time, offset
-
-
-class _Damage(ValueError):
-    """Chunk data that contradict themselves or the file's index (internal)."""
-
-
-def _read_chunk(
-    bio: BinaryIO, chunk: Any, channel_map: dict[int, Connection]
-) -> list[tuple[int, Connection, bytes]]:
-    """The messages of ``chunk`` whose channel is in ``channel_map``, as ``(log time, connection,
-    raw)`` in log-time order (recorded order for equal times). Besides rosbags' size and CRC
-    checks, every record must parse, every message must lie in the chunk's time range, and the
-    messages must be those the file's message index lists (rosbags writes no chunk CRC)."""
-    bio.seek(chunk.chunk_start_offset + 9 + 24)
-    (crc,) = struct.unpack('<I', read_exact(bio, 4))
-    bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
-    compressed = read_exact(bio, chunk.compressed_size)
-    data = decompress(compressed, chunk.compression, chunk.uncompressed_size, crc)
-    view = memoryview(data)
-    found: set[tuple[int, int, int]] = set()
-    out: list[tuple[int, Connection, bytes]] = []
-    pos = 0
-    while pos < len(view):
-        if pos + _RECORD_HEAD.size > len(view):
-            raise _Damage(f'The chunk ends inside a record header (at {pos}).')
-        op, length = _RECORD_HEAD.unpack_from(view, pos)
-        start = pos + _RECORD_HEAD.size
-        if not (0x01 <= op <= 0x0F or op >= 0x80):
-            raise _Damage(f'Invalid record opcode 0x{op:02x} at {pos} inside the chunk.')
-        if length > len(view) - start:
-            raise _Damage(f'The record at {pos} inside the chunk overruns it.')
-        if op == 0x05:
-            if length < _MESSAGE_HEAD.size:
-                raise _Damage(f'The message record at {pos} is shorter than its header.')
-            cid, _, log_ns, _ = _MESSAGE_HEAD.unpack_from(view, start)
-            if not chunk.message_start_time <= log_ns <= chunk.message_end_time:
-                msg = f"A message logged at {log_ns} ns lies outside the chunk's time range."
-                raise _Damage(msg)
-            found.add((cid, log_ns, pos))
-            conn = channel_map.get(cid)
-            if conn is not None:
-                out.append(
-                    (log_ns, conn, bytes(view[start + _MESSAGE_HEAD.size : start + length]))
-                )
-        pos = start + length
-    if not crc:  # a matching CRC vouches for the data; without one the index is the check
-        indexed = _chunk_index(bio, chunk)
-        if found != indexed:
-            msg = (
-                f'Its messages differ from the message index: {len(indexed - found)} of '
-                f'{len(indexed)} indexed messages not found, {len(found - indexed)} not indexed.'
-            )
-            raise _Damage(msg)
-    out.sort(key=lambda m: m[0])
-    return out
-
-
-def _chunk_index(bio: BinaryIO, chunk: Any) -> set[tuple[int, int, int]]:
-    """``(channel, log time, offset)`` of every message the chunk's message index records list."""
-    out: set[tuple[int, int, int]] = set()
-    for cid, offset in chunk.message_index_offsets.items():
-        bio.seek(offset)
-        op, length = _RECORD_HEAD.unpack(read_exact(bio, _RECORD_HEAD.size))
-        body = read_exact(bio, length) if op == 0x07 and length >= 6 else b''
-        if not body or struct.unpack_from('<H', body)[0] != cid:
-            raise _Damage(f'The message index record of channel {cid} is damaged.')
-        (size,) = struct.unpack_from('<I', body, 2)
-        if size % _INDEX_ENTRY.size or 6 + size > len(body):
-            raise _Damage(f'The message index record of channel {cid} is damaged.')
-        out.update((cid, t, o) for t, o in _INDEX_ENTRY.iter_unpack(body[6 : 6 + size]))
-    return out
 
 
 # -- helpers -----------------------------------------------------------------------------------
@@ -539,8 +922,9 @@ def _load_metadata(metapath: Path, bag: Path) -> dict[str, Any]:
     return meta
 
 
-def _check_mcap_file(file: Path, bag: Path) -> None:
+def _check_mcap_file(file: Path, bag: Path, label: Path | None = None) -> None:
     """Magic at both ends: a file without its footer is truncated (recorder killed)."""
+    file_label = label or file
     try:
         size = file.stat().st_size
         with file.open('rb') as fh:
@@ -551,23 +935,23 @@ def _check_mcap_file(file: Path, bag: Path) -> None:
             else:
                 tail = b''
     except OSError as err:
-        msg = f'cannot read {file}: {err.strerror or err}'
+        msg = f'cannot read {file_label}: {err.strerror or err}'
         raise BagError(msg) from err
     if size == 0:
-        msg = f'{file} is empty: nothing was recorded; remove the bag {bag}'
+        msg = f'{file_label} is empty: nothing was recorded; remove the bag {bag}'
         raise BagError(msg)
     if head == MCAP_MAGIC and size < len(MCAP_MAGIC) + 9:
         msg = (
-            f'{file} holds the MCAP magic bytes and no record ({size} bytes): nothing was '
+            f'{file_label} holds the MCAP magic bytes and no record ({size} bytes): nothing was '
             f'recorded; remove the bag {bag}'
         )
         raise BagError(msg)
     if head != MCAP_MAGIC:
-        msg = f'{file} is not an MCAP file (it does not start with the MCAP magic bytes)'
+        msg = f'{file_label} is not an MCAP file (it does not start with the MCAP magic bytes)'
         raise BagError(msg)
     if tail != MCAP_MAGIC:
         msg = (
-            f'{file} is truncated: it ends without the MCAP footer ({size} bytes; the recording '
+            f'{file_label} is truncated: it ends without the MCAP footer ({size} bytes; the recording '
             'was cut off, e.g. the recorder was killed or the disk filled up). Run '
             f'`cloe bag recover {bag}` to rescue the complete messages.'
         )
@@ -602,31 +986,3 @@ def _qos_text(stored: Any) -> str:
     if isinstance(stored, str):
         return stored
     return yaml.safe_dump(stored, default_flow_style=False, sort_keys=True)
-
-
-def _mcap_channel_qos(reader: Reader) -> dict[str, str]:
-    """offered_qos_profiles from the channel metadata of a single MCAP file."""
-    out: dict[str, str] = {}
-    storage = reader.storage
-    for channel in getattr(storage, 'channels', {}).values():
-        text = _qos_text(_channel_metadata(channel.metadata).get('offered_qos_profiles', ''))
-        if text and channel.topic not in out:
-            out[channel.topic] = text
-    return out
-
-
-def _channel_metadata(raw: bytes) -> dict[str, str]:
-    """MCAP channel metadata: a sequence of (uint32 length, utf-8 key, uint32 length, value)."""
-    out: dict[str, str] = {}
-    pos = 0
-    try:
-        while pos < len(raw):
-            items = []
-            for _ in range(2):
-                n = int.from_bytes(raw[pos : pos + 4], 'little')
-                items.append(raw[pos + 4 : pos + 4 + n].decode())
-                pos += 4 + n
-            out[items[0]] = items[1]
-    except UnicodeDecodeError:
-        return out
-    return out

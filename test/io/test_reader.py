@@ -625,3 +625,166 @@ def test_messages_needs_open(tmp_path):
     bag = BagReader(tmp_path / 'bag')
     with pytest.raises(BagError, match='is not open'):
         bag.messages()
+
+
+# -- CRCs, what the file says against metadata.yaml, encodings -----------------------------------
+
+
+def package_bag(path: Path, n_odom: int = 3000) -> list[tuple[str, int, int]]:
+    """write_bag's messages written by the package's BagWriter (zstd chunks with CRCs)."""
+    expected = []
+    with BagWriter(path) as writer:
+        writer.add_topic('/odom', ODOMETRY)
+        writer.add_topic('/reference', POSE_STAMPED)
+        for i in range(n_odom):
+            t = T0 + i * ODOM_DT
+            writer.write('/odom', t, _odom(i, t))
+            expected.append(('/odom', t, i))
+            if i % 2 == 0:
+                writer.write('/reference', t, _ref(i // 2, t))
+                expected.append(('/reference', t, i // 2))
+    return expected
+
+
+def test_a_bit_flipped_inside_compressed_chunk_data_is_found(tmp_path):
+    """One bit flipped in a zstd chunk: the data still decompress and parse, one message changed
+    (it was delivered silently before). The chunk's CRC finds it and the error names the file, the
+    chunk (number and offset) and its topics; the messages before it come out first."""
+    import bag_fixtures
+
+    expected = package_bag(tmp_path / 'bag')
+    mcap = tmp_path / 'bag' / 'bag.mcap'
+    with open(mcap, 'rb') as fh:
+        n_chunks = len(make_reader(fh).get_summary().chunk_indexes)
+    offset, _ = bag_fixtures.flip_inside_compressed_chunk(mcap, chunk=1)
+    for path in (tmp_path / 'bag', mcap):
+        got, text = read_until_error(path)
+        assert text.startswith(f'{mcap}: corrupt chunk at byte offset {offset} (messages of ')
+        assert '/odom' in text
+        assert 'Chunk checksum mismatch.' in text
+        assert f'It is chunk 2 of {n_chunks} in the file.' in text
+        assert 0 < len(got) < len(expected)
+        assert [(t, s) for t, s, _ in got] == [(t, s) for t, s, _ in expected[: len(got)]]
+
+
+def test_damage_outside_the_chunks_is_found_by_the_data_section_crc(tmp_path):
+    """A byte changed in the copy of metadata.yaml the file holds (an MCAP metadata record,
+    outside every chunk): only the data section CRC covers it. Every message is delivered, then
+    the error."""
+    expected = package_bag(tmp_path / 'bag', n_odom=50)
+    mcap = tmp_path / 'bag' / 'bag.mcap'
+    data = bytearray(mcap.read_bytes())
+    at = data.index(b'serialized_metadata') + 40
+    data[at] ^= 0x20
+    mcap.write_bytes(bytes(data))
+    got, text = read_until_error(tmp_path / 'bag')
+    assert len(got) == len(expected)
+    assert text.startswith(f'{mcap}: its data section does not match its CRC')
+    assert 'cloe bag recover' in text
+
+
+def test_a_damaged_summary_is_found_when_the_bag_is_opened(tmp_path):
+    """A byte changed in the summary (the repeated schema at the end of the file), which the
+    reader uses for topics, counts and chunks: its CRC refuses it at once."""
+    package_bag(tmp_path / 'bag', n_odom=50)
+    mcap = tmp_path / 'bag' / 'bag.mcap'
+    data = bytearray(mcap.read_bytes())
+    at = data.rindex(b'nav_msgs/msg/Odometry') + 3
+    data[at] ^= 0x01
+    mcap.write_bytes(bytes(data))
+    text = error_of(tmp_path / 'bag')
+    assert text.startswith(f'{mcap}: its summary (the index at the end of the file) does not match')
+    assert f'cloe bag recover {tmp_path / "bag"}' in text
+
+
+def test_counts_come_from_the_file(tmp_path):
+    """metadata.yaml claiming 10 messages of /odom and none in all: the counts are the file's,
+    every message is read, and the mismatch is said."""
+    expected = package_bag(tmp_path / 'bag', n_odom=100)
+    n_ref = sum(t == '/reference' for t, _, _ in expected)
+
+    def lie(meta):
+        meta['topics_with_message_count'][0]['message_count'] = 10
+        meta['message_count'] = 0
+        meta['duration']['nanoseconds'] = 0
+
+    edit_metadata(tmp_path / 'bag', lie)
+    with BagReader(tmp_path / 'bag') as bag:
+        assert bag.topics['/odom'].count == 100
+        assert bag.topics['/reference'].count == n_ref
+        assert bag.message_count == len(expected)
+        assert (bag.start_ns, bag.end_ns) == (expected[0][1], expected[-1][1])
+        assert bag.metadata_mismatch == ['metadata.yaml lists 10 messages of /odom, bag.mcap holds 100']
+        assert len(list(bag.messages())) == len(expected)
+
+    edit_metadata(tmp_path / 'bag', lambda m: m['topics_with_message_count'][0].update(
+        message_count=100))  # fmt: skip
+    with BagReader(tmp_path / 'bag') as bag:
+        assert bag.metadata_mismatch == [
+            f'metadata.yaml lists 0 messages in all, bag.mcap holds {len(expected)}'
+        ]
+
+
+def test_a_bag_written_by_the_package_agrees_with_its_metadata(tmp_path):
+    package_bag(tmp_path / 'bag', n_odom=10)
+    with BagReader(tmp_path / 'bag') as bag:
+        assert bag.metadata_mismatch == []
+
+
+def mcap_lib_file(path: Path, message_encoding: str = 'cdr', schema_encoding: str = 'ros2msg',
+                  n: int = 10) -> Path:  # fmt: skip
+    """A ROS 2 MCAP file written by the mcap library, its /odom channel in the given encodings."""
+    from mcap.writer import Writer as McapLibWriter
+
+    with path.open('wb') as fh:
+        w = McapLibWriter(fh)
+        w.start(profile='ros2', library='test')
+        msgdef = TYPESTORE.generate_msgdef(ODOMETRY)[0]
+        sid = w.register_schema(ODOMETRY, schema_encoding, msgdef.encode())
+        cid = w.register_channel('/odom', message_encoding, sid, {'offered_qos_profiles': ''})
+        for i in range(n):
+            t = T0 + i * ODOM_DT
+            w.add_message(cid, log_time=t, data=_odom(i, t), publish_time=t)
+        w.finish()
+    return path
+
+
+def test_a_channel_not_in_cdr_is_refused(tmp_path):
+    """A json channel (decoded as CDR before): refused, naming the topic and the encoding, as a
+    single file and inside a bag whose metadata.yaml says cdr."""
+    mcap = mcap_lib_file(tmp_path / 'json.mcap', message_encoding='json')
+    assert error_of(mcap) == (
+        f"{mcap}: topic /odom is encoded as 'json'; only cdr (ROS 2 CDR, what rosbag2 records) "
+        'can be read'
+    )
+    package_bag(tmp_path / 'bag', n_odom=10)
+    mcap_lib_file(tmp_path / 'bag' / 'bag.mcap', message_encoding='json')
+    assert "topic /odom is encoded as 'json'" in error_of(tmp_path / 'bag')
+
+
+def test_an_unknown_schema_encoding_is_refused_clearly(tmp_path):
+    """Before: `cannot open the bag: 'x-unknown'.`"""
+    mcap = mcap_lib_file(tmp_path / 'x.mcap', schema_encoding='x-unknown')
+    assert error_of(mcap) == (
+        f"{mcap}: topic /odom has a schema (nav_msgs/msg/Odometry) in encoding 'x-unknown'; "
+        'expected a ROS 2 message definition (ros2msg, ros2idl, omgidl)'
+    )
+
+
+def test_a_file_of_the_mcap_library_is_read(tmp_path):
+    mcap = mcap_lib_file(tmp_path / 'lib.mcap', n=30)
+    with BagReader(mcap) as bag:
+        assert bag.topics['/odom'].count == 30
+        got = list(bag.messages())
+    assert [decode_odometry(raw).position[0] for _, _, raw in got] == list(range(30))
+
+
+def test_a_symlink_loop_is_said_to_be_one(tmp_path):
+    loop = tmp_path / 'loop'
+    loop.symlink_to(tmp_path / 'loop')
+    assert error_of(loop) == f'{loop}: too many levels of symbolic links (a symbolic link loop)'
+    broken = tmp_path / 'broken'
+    broken.symlink_to(tmp_path / 'gone')
+    assert error_of(broken) == (
+        f'{broken} is a broken symbolic link (to {tmp_path / "gone"}, which does not exist)'
+    )

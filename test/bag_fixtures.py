@@ -8,6 +8,9 @@ as a rosbag2/MCAP bag in the layout of the interface contract (README): ``<ns>/o
 
 from __future__ import annotations
 
+import errno
+import io
+import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -200,10 +203,70 @@ def flip_inside_compressed_chunk(mcap_file: Path, chunk: int = 1) -> tuple[int, 
             try:
                 if records(out) != layout:
                     continue
-            except Exception:  # noqa: BLE001 - a record head changed: not the damage wanted
+            except Exception:
                 continue
             assert any(t is Message for t, *_ in layout)
             content[start + at] ^= bit
             mcap_file.write_bytes(bytes(content))
             return index.chunk_start_offset, start + at
     raise AssertionError('no bit flip found that leaves the chunk decompressible')
+
+
+class _SmallDisk(io.FileIO):
+    """A file on a disk with ``room`` bytes left: writes beyond fail with ENOSPC, as on a full
+    disk (a partial write first, then the error)."""
+
+    room = 1 << 40
+
+    def write(self, data) -> int:
+        free = self.room - self.tell()
+        if free <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return super().write(memoryview(data)[:free])
+
+
+def fill_disk_under(monkeypatch, directory: Path, room: int) -> None:
+    """``.mcap`` files opened under ``directory`` (with ``Path.open``, as BagWriter does) get
+    ``room`` bytes before writes fail with ENOSPC."""
+    path_open = Path.open
+    directory = Path(directory)
+
+    def small_disk_open(self, mode='r', *args, **kwargs):
+        if self.suffix != '.mcap' or directory not in self.parents or 'r' in mode:
+            return path_open(self, mode, *args, **kwargs)
+        raw = _SmallDisk(self, mode.replace('b', ''))
+        raw.room = room
+        return io.BufferedWriter(raw)
+
+    monkeypatch.setattr(Path, 'open', small_disk_open)
+
+
+def run_on_small_disk(mountpoint: Path, size: str, *cloe_args: str) -> tuple[int, str, str, str]:
+    """``cloe *cloe_args`` (this source tree's) with a tmpfs of ``size`` (e.g. ``64k``) mounted at
+    ``mountpoint`` in a mount namespace of its own (``unshare -rm``): a real full disk. Returns
+    (status, stdout, stderr, what is left on the disk); skips the test where such a namespace
+    cannot be made."""
+    import shutil
+    import subprocess
+    import sys
+
+    import pytest
+
+    if shutil.which('unshare') is None:
+        pytest.skip('no unshare: cannot mount a small disk')
+    mountpoint.mkdir(exist_ok=True)
+    script = (
+        'mnt="$1"; shift; mount -t tmpfs -o size="$1" tmpfs "$mnt" || exit 99; shift; '
+        '"$@"; rc=$?; echo "LEFT:$(ls -A "$mnt")" >&2; exit $rc'
+    )
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root))
+    command = [sys.executable, '-m', 'cloe_ros.cli.main', *cloe_args]
+    proc = subprocess.run(
+        ['unshare', '-rm', 'sh', '-c', script, 'sh', str(mountpoint), size, *command],
+        capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    if proc.returncode == 99 or 'LEFT:' not in proc.stderr:
+        pytest.skip(f'cannot mount a tmpfs in a private namespace: {proc.stderr.strip()}')
+    err, _, left = proc.stderr.rpartition('LEFT:')
+    return proc.returncode, proc.stdout, err, left.strip()

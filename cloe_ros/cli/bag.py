@@ -1,7 +1,9 @@
 """``cloe bag``: look into bags and recover the ones whose recorder died.
 
-* ``cloe bag info BAG`` — topics, types, message counts, duration, start and end (log time);
-  the data are read through to check them, and a damaged bag ends with status 1.
+* ``cloe bag info BAG`` — topics, types, message counts, duration, start and end (log time),
+  from the files; where metadata.yaml disagrees, a ``warning:`` line (status 0). The data are
+  read through to check them (CRCs, message indexes, counts), and a damaged bag ends with
+  status 1.
 * ``cloe bag recover BAG [-o OUT]`` — a complete bag from an ``.mcap`` without summary/footer
   (recorder killed, power lost) or with damaged records: every message fully on disk and intact,
   written to ``<BAG>_recovered``.
@@ -13,8 +15,8 @@ import argparse
 from pathlib import Path
 
 from cloe_ros.cli.errors import CliError
-from cloe_ros.io.reader import BagError, BagReader
-from cloe_ros.io.recover import BagInfo, TopicSummary, bag_info, mcap_damage, recover_bag
+from cloe_ros.io.bag_info import bag_info
+from cloe_ros.io.recover import recover_bag
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -28,7 +30,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     info = bag_sub.add_parser(
         'info',
         help='topics, types, message counts and time span of a bag',
-        description='Print the topics, types, message counts, duration, start and end of a bag.',
+        description=(
+            'Print the topics, types, message counts, duration, start and end of a bag, as its '
+            'files hold them (a "warning:" line where metadata.yaml says otherwise), and check '
+            'its data: every record is read, chunks are checked against their CRCs or message '
+            'indexes. A damaged bag ends with status 1.'
+        ),
     )
     info.add_argument(
         'bag', type=Path, metavar='BAG', help='rosbag2 directory (or one .mcap file)'
@@ -63,34 +70,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     rec.set_defaults(run=run_recover)
 
 
-def mcap_file_info(path: Path) -> BagInfo:
-    """What ``cloe bag info`` shows, for a single ``.mcap`` file (from its own summary)."""
-    try:
-        with BagReader(path) as reader:
-            topics = tuple(
-                TopicSummary(name, info.msgtype, info.count)
-                for name, info in reader.topics.items()
-            )
-            storage = 'mcap, a single file without metadata.yaml'
-            damage = mcap_damage([path], {t.topic: t.count for t in topics})
-            return BagInfo(path, (path.name,), storage, topics, reader.message_count,
-                           reader.start_ns, reader.end_ns, tuple(damage))  # fmt: skip
-    except BagError as err:
-        raise CliError(str(err)) from err
-
-
 def run_info(args: argparse.Namespace) -> int:
     bag: Path = args.bag
-    if not bag.exists():
-        raise CliError(f'{bag} does not exist')
-    if bag.is_file() and bag.suffix == '.mcap':
-        info = mcap_file_info(bag)
-    elif bag.is_file():
-        raise CliError(
-            f'{bag} is a file, not a bag: expected a rosbag2 directory (or a single .mcap file)'
-        )
-    else:
-        info = bag_info(bag)
+    info = bag_info(bag)
     for line in info.lines():
         print(line)
     if info.damage:

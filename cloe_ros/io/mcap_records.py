@@ -52,10 +52,12 @@ __all__ = [
     'RECORD_HEAD_SIZE',
     'Opcode',
     'RecordError',
+    'bounded_stream',
     'check_chunk_crc',
     'chunk_data_offset',
     'chunk_records',
     'crc_of_range',
+    'decompress_chunk',
     'iter_records',
     'known_opcode',
     'opcode_name',
@@ -187,9 +189,9 @@ def chunk_data_offset(compression: str) -> int:
     return empty - RECORD_HEAD_SIZE
 
 
-def chunk_records(chunk: Chunk) -> bytes:
-    """The uncompressed records of a complete ``chunk``, checked against its size and, when it has
-    one, its CRC (:class:`RecordError` saying which check failed)."""
+def decompress_chunk(chunk: Chunk) -> bytes:
+    """The uncompressed records of a complete ``chunk``, checked against its size (not its CRC:
+    :func:`check_chunk_crc`); :class:`RecordError` saying what failed."""
     if chunk.compression not in COMPRESSIONS:
         raise RecordError(f'unsupported chunk compression {chunk.compression!r}')
     try:
@@ -206,12 +208,25 @@ def chunk_records(chunk: Chunk) -> bytes:
             f'{chunk.uncompressed_size}.'
         )
         raise RecordError(msg)
+    return data
+
+
+def chunk_records(chunk: Chunk) -> bytes:
+    """The uncompressed records of a complete ``chunk``, checked against its size and, when it has
+    one, its CRC (:class:`RecordError` saying which check failed)."""
+    data = decompress_chunk(chunk)
     check_chunk_crc(chunk, data)
     return data
 
 
+def bounded_stream(data: bytes | memoryview) -> ReadDataStream:
+    """The library's data stream over ``data``, raising :class:`RecordError` instead of reading
+    past their end (for reading the fields of a record that is cut)."""
+    return _Bounded(data)
+
+
 def check_chunk_crc(chunk: Chunk, data: bytes) -> None:
-    """:class:`RecordError` if ``chunk`` has a CRC and its uncompressed ``data`` do not match it."""
+    """:class:`RecordError` if ``chunk`` has a CRC that its uncompressed ``data`` do not match."""
     if not chunk.uncompressed_crc:
         return
     actual = zlib.crc32(data)

@@ -1,4 +1,4 @@
-"""Recover bags whose recorder died or whose files are damaged, and summarize bags.
+"""Recover bags whose recorder died or whose files are damaged.
 
 A recorder killed with SIGKILL (or a machine that lost power) leaves a rosbag2 directory whose
 ``.mcap`` has no summary section and no footer, and no ``metadata.yaml`` (or a stale one): readers
@@ -8,185 +8,108 @@ and intact. A damaged record is stepped over and reported when readable records 
 length leads to them, or the summary of a file that still has one says where the next chunk
 starts); reading stops where nothing readable follows: a cut, or zeros or garbage up to the end.
 
-The parser is a small one of our own, bounded by the file size at every step, so a cut at any byte
-(or garbage after the last good record) ends the scan instead of raising or allocating.
+Records are decoded by the ``mcap`` library (:mod:`cloe_ros.io.mcap_records`: its record classes,
+opcodes and data streams, bounded by the bytes on disk); what is this module's own is the salvage
+loop the library's readers cannot do, which never reads or allocates past the end of the file, so
+a cut at any byte (or garbage after the last good record) ends the scan instead of raising.
 
-MCAP records (https://mcap.dev/spec): ``opcode u8, length u64, body``; integers little-endian,
-strings ``u32 length + UTF-8``. A chunk holds schema, channel and message records, compressed with
+MCAP (https://mcap.dev/spec): a chunk holds schema, channel and message records, compressed with
 zstd or lz4 or not at all, and is followed by message index records (channel, log time and offset
 of each of its messages). Messages of a chunk whose end is missing (cut off, or zero-filled) are
 recovered when their bytes are complete inside the part that is on disk (a compressed chunk is
-decompressed as far as its data go). rosbags writes no chunk CRC, so a chunk whose messages differ
-from its message index counts as damaged.
+decompressed as far as its data go). A complete chunk is checked against its CRC where it has one
+(bags this package writes do); a chunk whose CRC fails is left out whole unless the damage is
+located (a record that does not parse or that its message index contradicts), and then, in an
+uncompressed chunk, the messages found where the index puts them are kept. A chunk without CRC
+(rosbags writes none) whose messages differ from its message index counts as damaged. The data
+section CRC (``DataEnd``) is checked too: it tells of damage outside the chunks' records.
+
+``cloe bag info`` (:mod:`cloe_ros.io.bag_info`) uses the same scan to check a bag's data.
 """
 
 from __future__ import annotations
 
 import re
 import shutil
-import struct
 import sys
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import BinaryIO
 
-import yaml
-from rosbags.rosbag2 import Reader, Writer
-from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Schema,
+    Statistics,
+)
 from rosbags.rosbag2.errors import ReaderError
-from rosbags.rosbag2.errors import WriterError as RosbagsWriterError
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
-from cloe_ros.io.errors import RecoverError
-from cloe_ros.io.reader import BagError, check_bag
+from cloe_ros.io import mcap_records as mr
+from cloe_ros.io.errors import RecoverError, WriterError
+from cloe_ros.io.reader import missing_message
+from cloe_ros.io.writer import BagWriter
 
-MAGIC = b'\x89MCAP0\r\n'
+__all__ = [
+    'FileRecovery',
+    'McapChannel',
+    'McapMessage',
+    'McapScan',
+    'McapSchema',
+    'RecoverError',
+    'RecoveryReport',
+    'SkippedRecord',
+    'default_output',
+    'mcap_files',
+    'recover_bag',
+]
 
-OP_HEADER = 0x01
-OP_FOOTER = 0x02
-OP_SCHEMA = 0x03
-OP_CHANNEL = 0x04
-OP_MESSAGE = 0x05
-OP_CHUNK = 0x06
-OP_MESSAGE_INDEX = 0x07
-OP_CHUNK_INDEX = 0x08
-OP_STATISTICS = 0x0B
-OP_DATA_END = 0x0F
-#: The opcodes the MCAP specification defines are 0x01-0x0F; 0x80-0xFF are user extensions.
-_OPCODE_NAMES = {
-    0x01: 'Header',
-    0x02: 'Footer',
-    0x03: 'Schema',
-    0x04: 'Channel',
-    0x05: 'Message',
-    0x06: 'Chunk',
-    0x07: 'MessageIndex',
-    0x08: 'ChunkIndex',
-    0x09: 'Attachment',
-    0x0A: 'AttachmentIndex',
-    0x0B: 'Statistics',
-    0x0C: 'Metadata',
-    0x0D: 'MetadataIndex',
-    0x0E: 'SummaryOffset',
-    0x0F: 'DataEnd',
-}
+Op = mr.Opcode
+MAGIC = mr.MAGIC
+_HEAD = mr.RECORD_HEAD_SIZE
+#: the body of a footer record
+_FOOTER_BODY = mr.FOOTER_SIZE - _HEAD
 
-_U16 = struct.Struct('<H')
-_U32 = struct.Struct('<I')
-_U64 = struct.Struct('<Q')
-_RECORD_HEAD = struct.Struct('<BQ')
-_MESSAGE_HEAD = struct.Struct('<HIQQ')  # channel id, sequence, log time, publish time
-_CHUNK_HEAD = struct.Struct('<QQQI')  # start, end, uncompressed size, uncompressed crc
+#: The records a scan yields: the mcap library's classes.
+McapSchema = Schema
+McapChannel = Channel
+McapMessage = Message
 
 
 class _Corrupt(Exception):
     """Bytes that do not parse as the record they claim to be (internal)."""
 
 
-@dataclass(frozen=True)
-class McapSchema:
-    id: int
-    name: str
-    encoding: str
-    data: bytes
+class _CrcMismatch(_Corrupt):
+    """A complete chunk whose records do not match its CRC; ``located`` when a record that does
+    not parse, or that the message index contradicts, shows where the damage is (internal)."""
+
+    def __init__(self, msg: str, located: bool) -> None:
+        super().__init__(msg)
+        self.located = located
 
 
-@dataclass(frozen=True)
-class McapChannel:
-    id: int
-    schema_id: int
-    topic: str
-    message_encoding: str
-    metadata: tuple[tuple[str, str], ...]
+def _parse(op: int, body: bytes | memoryview):
+    """The record (mcap library class) of ``op`` with ``body``; :class:`_Corrupt` if it does not
+    parse."""
+    try:
+        return mr.parse_record(op, body)
+    except mr.RecordError as err:
+        raise _Corrupt(str(err)) from err
 
 
-@dataclass(frozen=True)
-class McapMessage:
-    channel_id: int
-    sequence: int
-    log_time: int
-    publish_time: int
-    data: bytes
-
-
-# -- record bodies -----------------------------------------------------------------------------
-
-
-class _Body:
-    """A cursor over one record's body that never reads past its end."""
-
-    def __init__(self, data: bytes | memoryview) -> None:
-        self.data = memoryview(data)
-        self.pos = 0
-
-    def take(self, n: int) -> memoryview:
-        if n < 0 or self.pos + n > len(self.data):
-            raise _Corrupt(f'field of {n} bytes at {self.pos} overruns the record')
-        out = self.data[self.pos : self.pos + n]
-        self.pos += n
-        return out
-
-    def u16(self) -> int:
-        return _U16.unpack(self.take(2))[0]
-
-    def u32(self) -> int:
-        return _U32.unpack(self.take(4))[0]
-
-    def u64(self) -> int:
-        return _U64.unpack(self.take(8))[0]
-
-    def string(self) -> str:
-        try:
-            return str(self.take(self.u32()), 'utf-8')
-        except UnicodeDecodeError as err:
-            raise _Corrupt(f'string is not UTF-8: {err}') from err
-
-    def rest(self) -> memoryview:
-        return self.take(len(self.data) - self.pos)
-
-
-def _parse_schema(body: bytes | memoryview) -> McapSchema:
-    b = _Body(body)
-    sid = b.u16()
-    name = b.string()
-    encoding = b.string()
-    data = bytes(b.take(b.u32()))
-    if sid == 0:
-        raise _Corrupt('schema id 0 is reserved')
-    return McapSchema(sid, name, encoding, data)
-
-
-def _parse_channel(body: bytes | memoryview) -> McapChannel:
-    b = _Body(body)
-    cid = b.u16()
-    schema_id = b.u16()
-    topic = b.string()
-    encoding = b.string()
-    meta = _Body(b.take(b.u32()))
-    pairs = []
-    while meta.pos < len(meta.data):
-        pairs.append((meta.string(), meta.string()))
-    return McapChannel(cid, schema_id, topic, encoding, tuple(pairs))
-
-
-def _parse_message(body: bytes | memoryview) -> McapMessage:
-    if len(body) < _MESSAGE_HEAD.size:
-        raise _Corrupt(f'message record of {len(body)} bytes is shorter than its header')
-    cid, seq, log_time, publish_time = _MESSAGE_HEAD.unpack_from(body)
-    return McapMessage(cid, seq, log_time, publish_time, bytes(body[_MESSAGE_HEAD.size :]))
-
-
-def _parse_inner(op: int, body: bytes | memoryview) -> McapSchema | McapChannel | McapMessage:
-    """A schema, channel or message record (``op``) from its body."""
-    if op == OP_SCHEMA:
-        return _parse_schema(body)
-    if op == OP_CHANNEL:
-        return _parse_channel(body)
-    return _parse_message(body)
+def _head(data: bytes | memoryview, at: int = 0) -> tuple[int, int]:
+    """``(opcode, length)`` of the record head at ``at`` of ``data`` (9 bytes there)."""
+    return mr.read_head(memoryview(data)[at : at + _HEAD])
 
 
 # -- decompression -----------------------------------------------------------------------------
@@ -263,21 +186,6 @@ def _readable_prefix(compression: str, data: bytes) -> bytes:
 # -- the scan ----------------------------------------------------------------------------------
 
 
-def _known(op: int) -> bool:
-    """An opcode the specification defines (0x01-0x0F), or a user extension (0x80-0xFF)."""
-    return OP_HEADER <= op <= OP_DATA_END or op >= 0x80
-
-
-@dataclass(frozen=True)
-class _ChunkHead:
-    start: int  # log time of the first and last message
-    end: int
-    size: int  # uncompressed size
-    crc: int  # CRC-32 of the uncompressed records, 0 when not computed
-    compression: str
-    data: bytes  # the compressed records (their part on disk for a cut chunk)
-
-
 def _check_index(
     records: list[tuple[int, object]], index: dict[int, set[tuple[int, int]]]
 ) -> None:
@@ -297,16 +205,25 @@ def _check_index(
             raise _Corrupt(msg)
 
 
-def _chunk_head(body: bytes | memoryview, complete: bool) -> _ChunkHead:
-    b = _Body(body)
-    start, end, size, crc = _CHUNK_HEAD.unpack(b.take(_CHUNK_HEAD.size))
-    compression = b.string()
-    records_len = b.u64()
+def _chunk_head(body: bytes | memoryview, complete: bool) -> Chunk:
+    """The chunk record of ``body``; for a chunk not ``complete`` on disk, its fields and as much
+    of its compressed records as ``body`` holds (the library reads whole records only, so the
+    fields are read here, in the specification's order, from the library's bounded stream)."""
     if complete:
-        data = bytes(b.take(records_len))
-    else:
-        data = bytes(b.take(min(records_len, len(b.data) - b.pos)))
-    return _ChunkHead(start, end, size, crc, compression, data)
+        chunk = _parse(Op.CHUNK, body)
+        assert isinstance(chunk, Chunk)
+        return chunk
+    try:
+        stream = mr.bounded_stream(body)
+        start, end, size, crc = stream.read8(), stream.read8(), stream.read8(), stream.read4()
+        compression = stream.read_prefixed_string()
+        length = stream.read8()
+    except mr.RecordError as err:
+        raise _Corrupt(str(err)) from err
+    except UnicodeDecodeError as err:
+        raise _Corrupt('the compression name is not UTF-8') from err
+    data = bytes(memoryview(body)[stream.count : stream.count + length])
+    return Chunk(compression, data, end, start, crc, size)
 
 
 @dataclass(frozen=True)
@@ -339,15 +256,16 @@ class SkippedRecord:
 class McapScan:
     """Read one MCAP file sequentially, tolerating a cut or corruption anywhere.
 
-    Iterating yields :class:`McapSchema`, :class:`McapChannel` and :class:`McapMessage` records in
-    file order (chunk contents in place of their chunks). A damaged record is stepped over when
-    reading can go on after it: its length leads to plausible records, or (in a file that still
-    has its footer) the summary's chunk index says where the next chunk starts. It is listed in
-    ``skipped``. A chunk is damaged when it does not decompress or parse, when a message's log
-    time lies outside the chunk's time range, or when its messages differ from the message index
-    written after it (rosbags writes no chunk CRC, so the index is the check); of an uncompressed
-    damaged chunk the messages that match the index are kept, a compressed one is left out whole
-    (past the damage its decompressed bytes cannot be trusted). When the iteration ends:
+    Iterating yields :class:`McapSchema`, :class:`McapChannel` and :class:`McapMessage` records
+    (the mcap library's classes) in file order (chunk contents in place of their chunks). A
+    damaged record is stepped over when reading can go on after it: its length leads to
+    plausible records, or (in a file that still has its footer) the summary's chunk index says
+    where the next chunk starts. It is listed in ``skipped``. A chunk is damaged when it does not
+    decompress or parse, when its records do not match its CRC, when a message's log time lies
+    outside the chunk's time range, or (a chunk without CRC) when its messages differ from the
+    message index written after it. Of an uncompressed damaged chunk the messages that match the
+    index are kept, unless its CRC fails and nothing locates the damage; a compressed one is left
+    out whole (past the damage its decompressed bytes cannot be trusted). When the iteration ends:
 
     * ``end`` is the offset just past the last record read in full (``file_size`` for a good file),
     * ``complete`` says whether the footer and the closing magic were found,
@@ -356,7 +274,9 @@ class McapScan:
     * ``partial_chunk_messages`` counts messages taken from a last chunk whose end is missing: cut
       off by the end of the file, or (``damaged_tail``) followed by nothing readable (zero-filled
       or garbage up to the end of the file); its complete messages are kept as for a cut file,
-    * ``expected_messages`` is the message count of the file's statistics (None without summary).
+    * ``expected_messages`` is the message count of the file's statistics (None without summary),
+    * ``data_crc_mismatch`` says whether the file's ``DataEnd`` record holds a data section CRC
+      that the bytes before it do not match.
 
     ``source`` is a path or a seekable binary file object. Raises :class:`RecoverError` only when
     the file is not MCAP at all (or is empty).
@@ -375,6 +295,7 @@ class McapScan:
         self.reason = ''
         self.partial_chunk_messages = 0
         self.damaged_tail = False
+        self.data_crc_mismatch = False
         self.skipped: list[SkippedRecord] = []
         self.expected_messages: int | None = None
         self.schemas: dict[int, McapSchema] = {}
@@ -383,13 +304,13 @@ class McapScan:
         self._summary_schemas: dict[int, McapSchema] = {}
         self._summary_channels: dict[int, McapChannel] = {}
         self._resync_points: list[int] = []
-        # chunk offset -> (start, end, length, compression, compressed size, uncompressed size)
-        self._chunk_infos: dict[int, tuple[int, int, int, str, int, int]] = {}
+        self._chunk_infos: dict[int, ChunkIndex] = {}  # chunk offset -> the summary's index
 
     @property
     def damaged(self) -> bool:
-        """Whether damage was found (skipped records, or a damaged last chunk)."""
-        return bool(self.skipped) or self.damaged_tail
+        """Whether damage was found (skipped records, a damaged last chunk, a data section that
+        does not match its CRC)."""
+        return bool(self.skipped) or self.damaged_tail or self.data_crc_mismatch
 
     def __iter__(self) -> Iterator[McapSchema | McapChannel | McapMessage]:
         if self._stream is not None:
@@ -411,7 +332,7 @@ class McapScan:
         self.reason = f'{reason} (offset {offset} of {self.file_size} bytes)'
 
     def _scan(self, fh: BinaryIO) -> Iterator[McapSchema | McapChannel | McapMessage]:
-        magic = fh.read(len(MAGIC))
+        magic = fh.read(mr.MAGIC_SIZE)
         if not magic:
             msg = (
                 f'{self.path} is empty: the recorder stopped before writing anything, '
@@ -421,31 +342,31 @@ class McapScan:
         if magic != MAGIC[: len(magic)]:
             msg = f'{self.path} is not an MCAP file (it does not start with the MCAP magic bytes)'
             raise RecoverError(msg)
-        if len(magic) < len(MAGIC):
+        if len(magic) < mr.MAGIC_SIZE:
             self.end = 0
             self._stop(len(magic), 'file cut inside the MCAP magic')
             return
         self._read_summary(fh)
-        pos = self.end = len(MAGIC)
+        pos = self.end = mr.MAGIC_SIZE
         first = True
         while True:
             fh.seek(pos)
-            head = fh.read(_RECORD_HEAD.size)
+            head = fh.read(_HEAD)
             if not head:
                 self._stop(pos, 'file ends after a complete record, without footer')
                 return
-            if len(head) < _RECORD_HEAD.size:
+            if len(head) < _HEAD:
                 self._stop(pos, 'file cut inside a record header')
                 return
-            op, length = _RECORD_HEAD.unpack(head)
-            name = _OPCODE_NAMES.get(op, f'opcode 0x{op:02x}')
-            body_start = pos + _RECORD_HEAD.size
+            op, length = _head(head)
+            name = mr.opcode_name(op)
+            body_start = pos + _HEAD
             available = self.file_size - body_start
             problem = ''
-            if not _known(op):
+            if not mr.known_opcode(op):
                 what = 'zero bytes' if op == 0 else f'invalid opcode 0x{op:02x}'
                 problem = f'corrupt data: {what} where a record should start'
-            elif first and op != OP_HEADER:
+            elif first and op != Op.HEADER:
                 problem = f'corrupt data: first record is {name}, not Header'
             elif length > available and self._resync_points:
                 problem = f'corrupt {name} record: its length ({length} bytes) overruns the file'
@@ -459,13 +380,13 @@ class McapScan:
                 if resume is None:
                     self._stop(pos, problem)
                     return
-                what = 'record' if not _known(op) else f'{name} record'
+                what = 'record' if not mr.known_opcode(op) else f'{name} record'
                 self.skipped.append(SkippedRecord(pos, resume - pos, what, problem, None))
                 pos = self.end = resume
                 first = False
                 continue
             if length > available:
-                if op == OP_CHUNK:
+                if op == Op.CHUNK:
                     yield from self._partial_chunk(fh, pos, length, available)
                 else:
                     self._stop(pos, f'file cut inside a {name} record ({length} bytes)')
@@ -475,7 +396,7 @@ class McapScan:
                 self._stop(pos, f'file cut inside a {name} record ({length} bytes)')
                 return
             after = body_start + length
-            if op == OP_CHUNK:
+            if op == Op.CHUNK:
                 index = self._message_index(fh, after)
                 try:
                     records = self._chunk(body, index)
@@ -497,7 +418,7 @@ class McapScan:
                     continue
             else:
                 try:
-                    records = self._record(op, body)
+                    records = self._record(fh, pos, op, body)
                 except _Corrupt as err:
                     problem = f'corrupt {name} record: {err}'
                     resume = self._resume(fh, pos, length)
@@ -511,11 +432,11 @@ class McapScan:
             yield from self._emit(records)
             first = False
             pos = self.end = after
-            if op == OP_FOOTER:
+            if op == Op.FOOTER:
                 fh.seek(pos)
-                tail = fh.read(len(MAGIC))
+                tail = fh.read(mr.MAGIC_SIZE)
                 if tail == MAGIC:
-                    self.end = pos + len(MAGIC)
+                    self.end = pos + mr.MAGIC_SIZE
                     self.complete = True
                     self.reason = 'complete file (footer found)'
                 else:
@@ -532,25 +453,25 @@ class McapScan:
             if offset > self.file_size:
                 return False
             fh.seek(offset)
-            head = fh.read(_RECORD_HEAD.size)
-            if len(head) < _RECORD_HEAD.size:
+            head = fh.read(_HEAD)
+            if len(head) < _HEAD:
                 return i > 0  # the file ends (or is cut) after a plausible record
-            op, length = _RECORD_HEAD.unpack(head)
-            if not OP_FOOTER <= op <= OP_DATA_END:
+            op, length = _head(head)
+            if not Op.FOOTER <= op <= Op.DATA_END:
                 return False
-            if length > self.file_size - offset - _RECORD_HEAD.size:
-                return op == OP_CHUNK
-            if op == OP_FOOTER:
-                return length == 20 and offset + _RECORD_HEAD.size + 20 + len(MAGIC) == (
+            if length > self.file_size - offset - _HEAD:
+                return op == Op.CHUNK
+            if op == Op.FOOTER:
+                return length == _FOOTER_BODY and offset + mr.FOOTER_SIZE + mr.MAGIC_SIZE == (
                     self.file_size
                 )
-            offset += _RECORD_HEAD.size + length
+            offset += _HEAD + length
         return True
 
     def _resume(self, fh: BinaryIO, pos: int, length: int) -> int | None:
         """Where reading goes on after the damaged record at ``pos`` (None: nowhere): after it, if
         its length leads to plausible records; else at the next chunk the summary knows of."""
-        after = pos + _RECORD_HEAD.size + length
+        after = pos + _HEAD + length
         if after <= self.file_size and self._valid_at(fh, after):
             return after
         for point in self._resync_points:
@@ -562,48 +483,44 @@ class McapScan:
         """From the summary section of a file that ends with its footer: schemas and channels
         (for messages whose declaration was in a damaged chunk), where the chunks start (to read
         on after a record whose length is damaged) and the message count of the statistics."""
-        footer = self.file_size - len(MAGIC) - _RECORD_HEAD.size - 20
-        if footer <= len(MAGIC):
+        footer_at = self.file_size - mr.MAGIC_SIZE - mr.FOOTER_SIZE
+        if footer_at <= mr.MAGIC_SIZE:
             return
-        fh.seek(footer)
-        tail = fh.read(_RECORD_HEAD.size + 20 + len(MAGIC))
-        if tail[-len(MAGIC) :] != MAGIC or tail[:9] != _RECORD_HEAD.pack(OP_FOOTER, 20):
+        fh.seek(footer_at)
+        tail = fh.read(mr.FOOTER_SIZE + mr.MAGIC_SIZE)
+        if tail[-mr.MAGIC_SIZE :] != MAGIC or _head(tail) != (Op.FOOTER, _FOOTER_BODY):
             return
-        (summary_start,) = _U64.unpack_from(tail, 9)
-        if not len(MAGIC) < summary_start < footer:
+        try:
+            footer = _parse(Op.FOOTER, tail[_HEAD : mr.FOOTER_SIZE])
+        except _Corrupt:  # pragma: no cover - a footer of the right length always parses
+            return
+        assert isinstance(footer, Footer)
+        summary_start = footer.summary_start
+        if not mr.MAGIC_SIZE < summary_start < footer_at:
             return
         fh.seek(summary_start)
-        data = memoryview(fh.read(footer - summary_start))
+        data = memoryview(fh.read(footer_at - summary_start))
         points = []
         pos = 0
-        while pos + _RECORD_HEAD.size <= len(data):
-            op, length = _RECORD_HEAD.unpack_from(data, pos)
-            if length > len(data) - pos - _RECORD_HEAD.size:
+        while pos + _HEAD <= len(data):
+            op, length = _head(data, pos)
+            if length > len(data) - pos - _HEAD:
                 break
-            body = data[pos + _RECORD_HEAD.size : pos + _RECORD_HEAD.size + length]
             try:
-                if op == OP_SCHEMA:
-                    schema = _parse_schema(body)
-                    self._summary_schemas[schema.id] = schema
-                elif op == OP_CHANNEL:
-                    channel = _parse_channel(body)
-                    self._summary_channels[channel.id] = channel
-                elif op == OP_CHUNK_INDEX:
-                    b = _Body(body)
-                    start, end, offset, chunk_length = (b.u64() for _ in range(4))
-                    b.take(b.u32())  # message index offsets
-                    b.u64()  # message index length
-                    compression = b.string()
-                    self._chunk_infos[offset] = (
-                        start, end, chunk_length, compression, b.u64(), b.u64()
-                    )  # fmt: skip
-                    points.append(offset)
-                elif op == OP_STATISTICS:
-                    self.expected_messages = _U64.unpack_from(body, 0)[0]
-            except (_Corrupt, struct.error):
-                pass
-            pos += _RECORD_HEAD.size + length
-        self._resync_points = sorted({p for p in points if len(MAGIC) < p < summary_start})
+                record = _parse(op, data[pos + _HEAD : pos + _HEAD + length])
+            except _Corrupt:
+                record = None
+            if isinstance(record, Schema):
+                self._summary_schemas[record.id] = record
+            elif isinstance(record, Channel):
+                self._summary_channels[record.id] = record
+            elif isinstance(record, ChunkIndex):
+                self._chunk_infos[record.chunk_start_offset] = record
+                points.append(record.chunk_start_offset)
+            elif isinstance(record, Statistics):
+                self.expected_messages = record.message_count
+            pos += _HEAD + length
+        self._resync_points = sorted({p for p in points if mr.MAGIC_SIZE < p < summary_start})
         self._resync_points.append(summary_start)
 
     def _message_index(self, fh: BinaryIO, offset: int) -> dict[int, set[tuple[int, int]]] | None:
@@ -612,22 +529,19 @@ class McapScan:
         index: dict[int, set[tuple[int, int]]] = {}
         while True:
             fh.seek(offset)
-            head = fh.read(_RECORD_HEAD.size)
-            if len(head) < _RECORD_HEAD.size:
+            head = fh.read(_HEAD)
+            if len(head) < _HEAD:
                 break
-            op, length = _RECORD_HEAD.unpack(head)
-            if op != OP_MESSAGE_INDEX or length > self.file_size - offset - _RECORD_HEAD.size:
+            op, length = _head(head)
+            if op != Op.MESSAGE_INDEX or length > self.file_size - offset - _HEAD:
                 break
-            b = _Body(fh.read(length))
             try:
-                channel = b.u16()
-                entries = _Body(b.take(b.u32()))
-                mine = index.setdefault(channel, set())
-                while entries.pos < len(entries.data):
-                    mine.add((entries.u64(), entries.u64()))
+                record = _parse(op, fh.read(length))
             except _Corrupt:
                 return None
-            offset += _RECORD_HEAD.size + length
+            assert isinstance(record, MessageIndex)
+            index.setdefault(record.channel_id, set()).update(record.records)
+            offset += _HEAD + length
         return index or None
 
     # -- records --------------------------------------------------------------------------------
@@ -636,9 +550,9 @@ class McapScan:
         """Yield ``records``, registering schemas and channels; a message of a channel not
         declared so far (its declaration was in a damaged chunk) gets the summary's."""
         for rec in records:
-            if isinstance(rec, McapSchema):
+            if isinstance(rec, Schema):
                 self.schemas[rec.id] = rec
-            elif isinstance(rec, McapChannel):
+            elif isinstance(rec, Channel):
                 self.channels[rec.id] = rec
             elif rec.channel_id not in self.channels and rec.channel_id in self._summary_channels:
                 channel = self._summary_channels[rec.channel_id]
@@ -650,97 +564,121 @@ class McapScan:
                 yield channel
             yield rec
 
-    def _record(self, op: int, body: bytes) -> list[McapSchema | McapChannel | McapMessage]:
-        if op == OP_HEADER:
-            b = _Body(body)
-            self.profile = b.string()
-            b.string()  # library
+    def _record(
+        self, fh: BinaryIO, pos: int, op: int, body: bytes
+    ) -> list[McapSchema | McapChannel | McapMessage]:
+        """A top-level record other than a chunk: declarations and messages are yielded, the
+        header gives the profile, ``DataEnd`` the data section CRC (checked here)."""
+        if op not in (Op.HEADER, Op.SCHEMA, Op.CHANNEL, Op.MESSAGE, Op.DATA_END):
             return []
-        if op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
-            return [_parse_inner(op, body)]
-        return []
+        record = _parse(op, body)
+        if isinstance(record, Header):
+            self.profile = record.profile
+            return []
+        if isinstance(record, DataEnd):
+            if record.data_section_crc and not self.skipped:
+                crc = mr.crc_of_range(fh, 0, pos)
+                self.data_crc_mismatch = crc != record.data_section_crc
+            return []
+        return [record]
 
     @staticmethod
-    def _inner_records(data: bytes, head: _ChunkHead) -> tuple[list, str, int]:
+    def _inner_records(data: bytes, head: Chunk) -> tuple[list, str, int]:
         """The records of a chunk's uncompressed ``data`` with their offsets, up to the first
         one that is cut or does not parse or (a message) lies outside the chunk's time range;
         what stopped the parse ('' when all of ``data`` parsed); and where it stopped."""
         out: list[tuple[int, object]] = []
         inner = memoryview(data)
         pos = 0
+        start, end = head.message_start_time, head.message_end_time
         while pos < len(inner):
-            if pos + _RECORD_HEAD.size > len(inner):
+            if pos + _HEAD > len(inner):
                 return out, 'chunk ends inside a record header', pos
-            op, length = _RECORD_HEAD.unpack_from(inner, pos)
-            if not _known(op):
+            op, length = _head(inner, pos)
+            if not mr.known_opcode(op):
                 return out, f'invalid opcode 0x{op:02x} inside the chunk', pos
-            if length > len(inner) - pos - _RECORD_HEAD.size:
+            if length > len(inner) - pos - _HEAD:
                 return out, 'chunk ends inside a record', pos
-            if op in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
-                body = inner[pos + _RECORD_HEAD.size : pos + _RECORD_HEAD.size + length]
+            if op in (Op.SCHEMA, Op.CHANNEL, Op.MESSAGE):
                 try:
-                    rec = _parse_inner(op, body)
+                    rec = _parse(op, inner[pos + _HEAD : pos + _HEAD + length])
                 except _Corrupt as err:
-                    why = f'corrupt {_OPCODE_NAMES[op]} record inside the chunk: {err}'
+                    why = f'corrupt {mr.opcode_name(op)} record inside the chunk: {err}'
                     return out, why, pos
-                if isinstance(rec, McapMessage) and not head.start <= rec.log_time <= head.end:
+                if isinstance(rec, Message) and not start <= rec.log_time <= end:
                     why = (
                         f"a message logged at {rec.log_time} ns lies outside the chunk's time "
-                        f'range {head.start}-{head.end} ns'
+                        f'range {start}-{end} ns'
                     )
                     return out, why, pos
                 out.append((pos, rec))
-            pos += _RECORD_HEAD.size + length
+            pos += _HEAD + length
         return out, '', pos
 
     def _chunk(self, body: bytes, index: dict[int, set[tuple[int, int]]] | None) -> list:
-        """The records of a chunk that is whole on disk; :class:`_Corrupt` if it is damaged."""
+        """The records of a chunk that is whole on disk; :class:`_Corrupt` if it is damaged
+        (:class:`_CrcMismatch` if it does not match its CRC)."""
         head = _chunk_head(body, complete=True)
-        data = _decompress(head.compression, head.data, complete=True)
-        if len(data) != head.size:
-            msg = f'chunk holds {len(data)} bytes once uncompressed, its header says {head.size}'
-            raise _Corrupt(msg)
+        try:
+            data = mr.decompress_chunk(head)
+        except mr.RecordError as err:
+            raise _Corrupt(str(err)) from err
         records, problem, _ = self._inner_records(data, head)
-        if head.crc and zlib.crc32(data) != head.crc:
+        if head.uncompressed_crc and zlib.crc32(data) != head.uncompressed_crc:
             if not problem and index is not None:  # where the damage is, if the index tells
                 try:
                     _check_index(records, index)
                 except _Corrupt as err:
                     problem = str(err)
-            raise _Corrupt('chunk CRC does not match its data' + (f'; {problem}' if problem else ''))
+            why = 'chunk CRC does not match its data' + (f'; {problem}' if problem else '')
+            raise _CrcMismatch(why, located=bool(problem))
         if problem:
             raise _Corrupt(problem)
-        if index is not None and not head.crc:  # a matching CRC vouches for the data
+        if index is not None and not head.uncompressed_crc:  # a matching CRC vouches for it
             _check_index(records, index)
         return [rec for _, rec in records]
 
     def _chunk_from_summary(self, fh: BinaryIO, pos: int) -> tuple[list, int] | None:
         """The records of the chunk at ``pos`` read with what the summary's chunk index says of
         it (length, compression, sizes, time range) instead of its own, damaged header, and the
-        offset after it; None unless its messages are exactly those of the message index after
-        it."""
+        offset after it; None unless they are vouched for: by the chunk's CRC where its header
+        still holds one that matches, else by the message index after it."""
         info = self._chunk_infos.get(pos)
         if info is None:
             return None
-        start, end, length, compression, compressed_size, size = info
-        after = pos + length
-        if not pos + _RECORD_HEAD.size < after <= self.file_size:
+        after = pos + info.chunk_length
+        if not pos + _HEAD < after <= self.file_size:
             return None
         index = self._message_index(fh, after)
-        if index is None:
-            return None
-        skip = _CHUNK_HEAD.size + 4 + len(compression.encode()) + 8
-        fh.seek(pos + _RECORD_HEAD.size + skip)
-        compressed = fh.read(compressed_size)
-        head = _ChunkHead(start, end, size, 0, compression, compressed)
-        try:
-            data = _decompress(compression, compressed, complete=True)
-            records, problem, _ = self._inner_records(data, head)
-            if problem or len(data) != size:
-                return None
-            _check_index(records, index)
+        fh.seek(pos + _HEAD)
+        body = fh.read(info.chunk_length - _HEAD)
+        try:  # the fields before the compression name have fixed places: the CRC may be intact
+            crc = _chunk_head(body, complete=False).uncompressed_crc
         except _Corrupt:
+            crc = 0
+        skip = mr.chunk_data_offset(info.compression)
+        compressed = body[skip : skip + info.compressed_size]
+        head = Chunk(
+            info.compression, compressed, info.message_end_time, info.message_start_time, 0,
+            info.uncompressed_size,
+        )  # fmt: skip
+        try:
+            data = mr.decompress_chunk(head)
+        except mr.RecordError:
             return None
+        records, problem, _ = self._inner_records(data, head)
+        if problem:
+            return None
+        if crc:
+            if zlib.crc32(data) != crc:
+                return None
+        else:
+            if index is None:
+                return None
+            try:
+                _check_index(records, index)
+            except _Corrupt:
+                return None
         return [rec for _, rec in records], after
 
     def _salvage(self, pos: int, body: bytes | memoryview, cut: bool = False):
@@ -754,20 +692,20 @@ class McapScan:
             info = self._chunk_infos.get(pos)
             if info is None:
                 raise
-            start, end, _, compression, compressed_size, size = info
-            skip = _CHUNK_HEAD.size + 4 + len(compression.encode()) + 8
-            head = _ChunkHead(
-                start, end, size, 0, compression, bytes(body[skip:][:compressed_size])
-            )
+            skip = mr.chunk_data_offset(info.compression)
+            head = Chunk(
+                info.compression, bytes(body[skip:][: info.compressed_size]),
+                info.message_end_time, info.message_start_time, 0, info.uncompressed_size,
+            )  # fmt: skip
         data = _readable_prefix(head.compression, head.data)
         if cut:
-            data = data[: head.size]
+            data = data[: head.uncompressed_size]
         records, _, stop = self._inner_records(data, head)
         return head, records, data, stop
 
     def _read_with_summary(self, pos: int, found: tuple[list, int], problem: str) -> Iterator:
         records, after = found
-        n = sum(isinstance(r, McapMessage) for r in records)
+        n = sum(isinstance(r, Message) for r in records)
         reason = f'{problem}; read with the chunk index of the summary instead'
         self.skipped.append(SkippedRecord(pos, after - pos, 'Chunk', reason, 0, n))
         yield from self._emit(records)
@@ -776,8 +714,9 @@ class McapScan:
         """Step over a damaged chunk that has readable records after it. Of an uncompressed one
         (its records are the bytes on disk) keep the declarations before the damage and every
         message found where the index after the chunk puts it, with the channel and log time the
-        index gives."""
+        index gives; none if its CRC fails and nothing shows where the damage is."""
         kept: list = []
+        trusted = not (isinstance(err, _CrcMismatch) and not err.located)
         if length_ok and index is not None:
             try:
                 head, records, _, _ = self._salvage(pos, body)
@@ -785,17 +724,20 @@ class McapScan:
                 pass
             else:
                 if head.compression == '':
-                    kept = [(o, r) for o, r in records if not isinstance(r, McapMessage)]
-                    kept += self._indexed_messages(head, index)
+                    kept = [(o, r) for o, r in records if not isinstance(r, Message)]
+                    if trusted:
+                        kept += self._indexed_messages(head, index)
                     kept.sort(key=lambda item: item[0])
-        n_kept = sum(isinstance(r, McapMessage) for _, r in kept)
+        n_kept = sum(isinstance(r, Message) for _, r in kept)
         lost = sum(map(len, index.values())) - n_kept if index is not None else None
         reason = f'corrupt Chunk record: {err}'
+        if not trusted:
+            reason += ', and nothing shows which of its messages changed'
         self.skipped.append(SkippedRecord(pos, resume - pos, 'Chunk', reason, lost, n_kept))
         yield from self._emit([r for _, r in kept])
 
     @staticmethod
-    def _indexed_messages(head: _ChunkHead, index) -> list[tuple[int, McapMessage]]:
+    def _indexed_messages(head: Chunk, index) -> list[tuple[int, Message]]:
         """The intact message records of uncompressed chunk data at the offsets of ``index``: a
         message record with the channel and log time the index gives, ending where the next
         indexed message starts, or before a plausible record, or at the end of the data."""
@@ -805,28 +747,28 @@ class McapScan:
         out = []
         for channel, entries in index.items():
             for log_time, offset in entries:
-                if offset + _RECORD_HEAD.size > len(data):
+                if offset + _HEAD > len(data):
                     continue
-                op, length = _RECORD_HEAD.unpack_from(data, offset)
-                start = offset + _RECORD_HEAD.size
+                op, length = _head(data, offset)
+                start = offset + _HEAD
                 end = start + length
                 nxt = following[offset]
-                if op != OP_MESSAGE or end > len(data) or (nxt is not None and end > nxt):
+                if op != Op.MESSAGE or end > len(data) or (nxt is not None and end > nxt):
                     continue
                 if end not in (nxt, len(data)):
-                    if end + _RECORD_HEAD.size > len(data):
+                    if end + _HEAD > len(data):
                         continue
-                    op_after, length_after = _RECORD_HEAD.unpack_from(data, end)
-                    if op_after not in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE) or (
-                        length_after > len(data) - end - _RECORD_HEAD.size
+                    op_after, length_after = _head(data, end)
+                    if op_after not in (Op.SCHEMA, Op.CHANNEL, Op.MESSAGE) or (
+                        length_after > len(data) - end - _HEAD
                     ):
                         continue
                 try:
-                    msg = _parse_message(data[start:end])
+                    msg = _parse(Op.MESSAGE, data[start:end])
                 except _Corrupt:
                     continue
                 if (msg.channel_id, msg.log_time) == (channel, log_time) and (
-                    head.start <= log_time <= head.end
+                    head.message_start_time <= log_time <= head.message_end_time
                 ):
                     out.append((offset, msg))
         return out
@@ -834,7 +776,8 @@ class McapScan:
     def _damaged_last_chunk(self, pos, length, body, err) -> Iterator:
         """A chunk whole on disk that is damaged and followed by nothing readable (zero-filled or
         garbage up to the end of the file): its end was never written, so its complete records
-        are taken as for a chunk cut by the end of the file."""
+        are taken as for a chunk cut by the end of the file (none if its CRC fails and nothing
+        shows where the damage is)."""
         reason = (
             f'damaged Chunk record ({length} bytes) followed by nothing readable up to the end '
             f'of the file: {err}'
@@ -844,13 +787,15 @@ class McapScan:
         except _Corrupt:
             records = []
         else:
-            if head.compression == '' and data[stop : stop + 1] == b'\0':
+            if isinstance(err, _CrcMismatch) and not err.located:
+                records = [(o, r) for o, r in records if not isinstance(r, Message)]
+            elif head.compression == '' and data[stop : stop + 1] == b'\0':
                 # zeros where the next record should be: the file's end was never written, and
                 # the zeros may begin inside the last record read: keep none that reaches them
                 zeros = len(data[:stop]) - len(data[:stop].rstrip(b'\0'))
                 ends = [offset for offset, _ in records[1:]] + [stop]
                 records = [r for r, e in zip(records, ends) if e <= stop - zeros]
-        n = sum(isinstance(r, McapMessage) for _, r in records)
+        n = sum(isinstance(r, Message) for _, r in records)
         self.partial_chunk_messages = n
         self.damaged_tail = True
         yield from self._emit([r for _, r in records])
@@ -862,7 +807,7 @@ class McapScan:
         self, fh: BinaryIO, pos: int, length: int, available: int
     ) -> Iterator[McapSchema | McapChannel | McapMessage]:
         reason = f'file cut inside a Chunk record ({length} bytes, {available} on disk)'
-        fh.seek(pos + _RECORD_HEAD.size)
+        fh.seek(pos + _HEAD)
         body = fh.read(available)
         try:
             _, records, _, _ = self._salvage(pos, body, cut=True)
@@ -870,7 +815,7 @@ class McapScan:
             self._stop(pos, f'{reason}; its start is corrupt too: {err}')
             return
         records = [r for _, r in records]
-        n = sum(isinstance(r, McapMessage) for r in records)
+        n = sum(isinstance(r, Message) for r in records)
         self.partial_chunk_messages = n
         yield from self._emit(records)
         if n:
@@ -879,6 +824,14 @@ class McapScan:
 
 
 # -- recovery ----------------------------------------------------------------------------------
+
+
+#: What a data section CRC that fails while every chunk read matched its own says.
+DATA_CRC_MISMATCH = (
+    'its data section does not match its CRC, although every chunk matched its own: bytes '
+    'outside the messages were changed (a message index, a chunk header, a declaration); the '
+    'messages are intact'
+)
 
 
 def _without_offset(reason: str) -> str:
@@ -900,16 +853,17 @@ class FileRecovery:
     skipped: tuple[SkippedRecord, ...] = ()
     damaged_tail: bool = False
     expected_messages: int | None = None
+    data_crc_mismatch: bool = False
 
     @property
     def damaged(self) -> bool:
-        return bool(self.skipped) or self.damaged_tail
+        return bool(self.skipped) or self.damaged_tail or self.data_crc_mismatch
 
     def lines(self) -> list[str]:
         """How the file was read: one line, then one per damaged record stepped over."""
         reason = _without_offset(self.reason)
         n = f'{self.messages} messages read'
-        if self.complete and self.skipped:
+        if self.complete and (self.skipped or self.data_crc_mismatch):
             if self.expected_messages is not None:
                 n += f' of the {self.expected_messages} its statistics count'
             first = f'{self.path}: damaged (its footer is there); {n}'
@@ -932,7 +886,10 @@ class FileRecovery:
                 f'{self.path}: incomplete, {self.end} of {self.size} bytes usable: '
                 f'{self.reason}; {n}'
             )
-        return [first] + [f'  {s.line()}' for s in self.skipped]
+        out = [first] + [f'  {s.line()}' for s in self.skipped]
+        if self.data_crc_mismatch:
+            out.append(f'  {DATA_CRC_MISMATCH}')
+        return out
 
 
 @dataclass(frozen=True)
@@ -979,8 +936,7 @@ def mcap_files(bag: Path | str) -> list[Path]:
     """The ``.mcap`` files of a bag directory in recording order (or ``[bag]`` for a file)."""
     bag = Path(bag)
     if not bag.exists():
-        msg = f'{bag} does not exist'
-        raise RecoverError(msg)
+        raise RecoverError(missing_message(bag))
     if bag.is_file():
         if bag.suffix != '.mcap':
             msg = (
@@ -1076,17 +1032,13 @@ def recover_bag(
         msg = f'compression must be zstd or none, got {compression!r}'
         raise RecoverError(msg)
 
-    writer = Writer(output, version=9, storage_plugin=StoragePlugin.MCAP)
-    if compression == 'zstd':
-        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     try:
-        writer.open()
-    except (RosbagsWriterError, OSError) as err:
-        msg = f'cannot create {output}: {err}'
+        writer = BagWriter(output, compression)
+    except WriterError as err:
+        msg = f'cannot create {output}: {err.reason or err}'
         raise RecoverError(msg) from err
 
     types = _TypeInfo()
-    connections: dict[tuple, object] = {}
     counts: dict[str, int] = {}
     msgtypes: dict[str, str] = {}
     skipped: dict[str, str] = {}
@@ -1095,27 +1047,27 @@ def recover_bag(
     try:
         for path in files:
             scan = McapScan(path)
-            # channel id -> output connection (None: skipped) for this file
-            routes: dict[int, object] = {}
+            # channel id -> output topic (None: skipped) for this file
+            routes: dict[int, str | None] = {}
             n_file = 0
             for rec in scan:
                 if isinstance(rec, McapChannel):
-                    routes[rec.id] = _route(rec, scan, writer, types, connections, skipped)
+                    routes[rec.id] = _route(rec, scan, writer, types, skipped)
                     if routes[rec.id] is not None:
                         counts.setdefault(rec.topic, 0)
                         msgtypes[rec.topic] = scan.schemas[rec.schema_id].name
                     continue
                 if not isinstance(rec, McapMessage):
                     continue
-                conn = routes.get(rec.channel_id)
                 if rec.channel_id not in routes:
                     orphans += 1
                     continue
                 n_file += 1
-                if conn is None:
+                topic = routes[rec.channel_id]
+                if topic is None:
                     continue
-                writer.write(conn, rec.log_time, rec.data)
-                counts[conn.topic] += 1
+                writer.write(topic, rec.log_time, rec.data)
+                counts[topic] += 1
             results.append(
                 FileRecovery(
                     path,
@@ -1128,16 +1080,20 @@ def recover_bag(
                     tuple(scan.skipped),
                     scan.damaged_tail,
                     scan.expected_messages,
+                    scan.data_crc_mismatch,
                 )
             )
         if not counts:
             raise RecoverError(_nothing_to_recover(bag, results, skipped))
         writer.close()
-    except BaseException:
-        try:
-            writer.abort()
-        finally:
-            shutil.rmtree(output, ignore_errors=True)
+    except BaseException as err:
+        writer.abort()
+        shutil.rmtree(output, ignore_errors=True)
+        if isinstance(err, WriterError):
+            msg = (
+                f'cannot write {output}: {err.reason or err}; nothing recovered ({output} removed)'
+            )
+            raise RecoverError(msg) from err
         raise
     return RecoveryReport(output, tuple(results), counts, msgtypes, skipped, orphans)
 
@@ -1152,8 +1108,12 @@ def _nothing_to_recover(bag: Path, results: list[FileRecovery], skipped: dict[st
     )
 
 
-def _route(channel, scan, writer, types, connections, skipped):
-    """The output connection of an input channel, added on first sight; None if unusable."""
+def _route(
+    channel: Channel, scan: McapScan, writer: BagWriter, types: _TypeInfo, skipped: dict[str, str]
+) -> str | None:
+    """The output topic of an input channel, added to ``writer`` on first sight (a later channel
+    of the same topic adds its publishers' QoS profiles); None if unusable, and why in
+    ``skipped``."""
     schema = scan.schemas.get(channel.schema_id)
     topic = channel.topic
     if schema is None:
@@ -1168,120 +1128,16 @@ def _route(channel, scan, writer, types, connections, skipped):
         return None
     msgdef, rihs01 = info
     qos = _qos_of(channel)
-    key = (topic, schema.name, msgdef, tuple(qos))
-    if key not in connections:
-        connections[key] = writer.add_connection(
-            topic, schema.name, msgdef=msgdef, rihs01=rihs01, offered_qos_profiles=qos
+    known = writer.topics.get(topic)
+    if known is not None and known != schema.name:
+        skipped[f'{topic} ({schema.name})'] = (
+            f'channel {channel.id} of {scan.path} has type {schema.name}, the topic is '
+            f'recovered as {known}'
         )
+        return None
+    if known is None:
+        writer.add_topic(topic, schema.name, qos, msgdef=msgdef, rihs01=rihs01)
+    else:
+        writer.add_offered_qos(topic, qos)
     skipped.pop(topic, None)
-    return connections[key]
-
-
-# -- info --------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class TopicSummary:
-    topic: str
-    msgtype: str
-    count: int
-
-
-@dataclass(frozen=True)
-class BagInfo:
-    """What ``cloe bag info`` shows. Times are int ns (log time)."""
-
-    path: Path
-    files: tuple[str, ...]
-    storage: str
-    topics: tuple[TopicSummary, ...]
-    message_count: int
-    start_ns: int
-    end_ns: int
-    #: what is wrong with the data (:func:`mcap_damage`); empty for a good bag
-    damage: tuple[str, ...] = ()
-
-    @property
-    def duration_ns(self) -> int:
-        return max(0, self.end_ns - self.start_ns) if self.message_count else 0
-
-    def lines(self) -> list[str]:
-        def stamp(ns: int) -> str:
-            t = datetime.fromtimestamp(ns / 1e9, tz=timezone.utc)
-            return f'{t.isoformat(timespec="milliseconds")} ({ns / 1e9:.3f} s)'
-
-        out = [
-            f'bag:       {self.path}',
-            f'files:     {", ".join(self.files)} ({self.storage})',
-            f'messages:  {self.message_count}',
-        ]
-        if self.message_count:
-            out += [
-                f'duration:  {self.duration_ns / 1e9:.3f} s',
-                f'start:     {stamp(self.start_ns)}',
-                f'end:       {stamp(self.end_ns)}',
-            ]
-        out.append('topics:')
-        width = max((len(t.topic) for t in self.topics), default=0)
-        tw = max((len(t.msgtype) for t in self.topics), default=0)
-        out += [f'  {t.topic:<{width}}  {t.msgtype:<{tw}}  {t.count}' for t in self.topics]
-        for i, problem in enumerate(self.damage):
-            out.append(f'{"damaged:" if i == 0 else "":<11}{problem}')
-        return out
-
-
-def mcap_damage(files: list[Path], counts: dict[str, int]) -> list[str]:
-    """What is wrong with the data of complete ``.mcap`` files, read record by record as
-    :func:`recover_bag` reads them (``[]`` for good files): damaged records, a file that ends
-    early, and topics with fewer messages than ``counts`` (the bag's metadata or summary) lists."""
-    problems = []
-    found: dict[str, int] = {}
-    for path in files:
-        scan = McapScan(path)
-        for rec in scan:
-            if isinstance(rec, McapMessage) and rec.channel_id in scan.channels:
-                topic = scan.channels[rec.channel_id].topic
-                found[topic] = found.get(topic, 0) + 1
-        problems += [f'{path.name}: {s.line()}' for s in scan.skipped]
-        if not scan.complete:
-            problems.append(f'{path.name}: {scan.reason}')
-    for topic, n in sorted(counts.items()):
-        if found.get(topic, 0) < n:
-            problems.append(
-                f'{topic}: {found.get(topic, 0)} of the {n} messages listed are readable'
-            )
-    return problems
-
-
-def bag_info(bag: Path | str) -> BagInfo:
-    """Topics, types, counts and time span of a complete rosbag2 bag (from its metadata), and
-    (MCAP storage) what :func:`mcap_damage` finds wrong with its data."""
-    bag = Path(bag)
-    if not bag.is_dir():
-        msg = f'{bag} is not a bag directory'
-        raise RecoverError(msg)
-    try:
-        check_bag(bag)
-    except BagError as err:
-        raise RecoverError(str(err)) from err
-    try:
-        with Reader(bag) as reader:
-            topics = tuple(
-                TopicSummary(name, info.msgtype or '?', info.msgcount)
-                for name, info in sorted(reader.topics.items())
-            )
-            count = reader.message_count
-            start = reader.start_time if count else 0
-            # rosbags reports the end as the last log time + 1 ns
-            end = reader.end_time - 1 if count else 0
-            compression_mode = reader.compression_mode
-        meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
-        files = tuple(Path(p).name for p in meta['relative_file_paths'])
-        storage = str(meta['storage_identifier'])
-    except (ReaderError, FileNotFoundError, KeyError, TypeError, yaml.YAMLError) as err:
-        msg = f'cannot read bag {bag}: {err} (if its recorder died, try `cloe bag recover {bag}`)'
-        raise RecoverError(msg) from err
-    damage: list[str] = []
-    if storage == 'mcap' and compression_mode != 'file':
-        damage = mcap_damage([bag / f for f in files], {t.topic: t.count for t in topics})
-    return BagInfo(bag, files, storage, topics, count, start, end, tuple(damage))
+    return topic

@@ -3,10 +3,20 @@
 from __future__ import annotations
 
 import re
+import shutil
 import struct
 from pathlib import Path
 
 import numpy as np
+import pytest
+import yaml
+from bag_fixtures import (
+    fill_disk_under,
+    flip_inside_compressed_chunk,
+    run_on_small_disk,
+    write_sim_bag,
+)
+from mcap.reader import make_reader
 
 from cloe_ros.cli.main import main
 from cloe_ros.core.samples import OdometrySample
@@ -139,3 +149,144 @@ def test_info_of_unreadable_storage_files(tmp_path, capsys):
         f'ERROR: {cut} holds the MCAP magic bytes and no record (8 bytes): nothing was '
         f'recorded; remove the bag {tmp_path / "cut"}\n'
     )
+
+
+# -- CRCs, what the file says, full disks, links --------------------------------------------------
+
+
+@pytest.fixture(scope='module')
+def sim_bag(tmp_path_factory) -> Path:
+    """15 s of the simulated position flight, written by the package (three zstd chunks)."""
+    return write_sim_bag(tmp_path_factory.mktemp('bags') / 'sim')
+
+
+def messages_of(bag: Path) -> list[tuple[str, int, bytes]]:
+    """Every message, read with the mcap library (its CRC checks on)."""
+    (mcap,) = bag.glob('*.mcap')
+    with mcap.open('rb') as fh:
+        return [(c.topic, m.log_time, m.data)
+                for _, c, m in make_reader(fh, validate_crcs=True).iter_messages()]  # fmt: skip
+
+
+def test_a_bit_flip_inside_compressed_chunk_data_is_damage(sim_bag, tmp_path, capsys):
+    """One bit flipped in the second zstd chunk; the data still decompress and parse (before,
+    info and recover said nothing, and recover copied the changed message). info: damaged, the
+    chunk named. recover: the chunk is left out and said so, every message it writes is one that
+    was written."""
+    bag = tmp_path / 'bag'
+    shutil.copytree(sim_bag, bag)
+    (mcap,) = bag.glob('*.mcap')
+    offset, _ = flip_inside_compressed_chunk(mcap, chunk=1)
+    status, out, err = run(capsys, 'info', bag)
+    assert status == 1
+    assert re.search(
+        rf'^damaged: +{mcap.name}: damaged Chunk at byte {offset} \(\d+ bytes\): corrupt Chunk '
+        r'record: chunk CRC does not match its data, and nothing shows which of its messages '
+        r'changed; \d+ messages lost$', out, re.M), out  # fmt: skip
+    assert err.startswith(f'ERROR: {bag} is damaged')
+
+    status, out, err = run(capsys, 'recover', bag, '-o', tmp_path / 'fixed')
+    assert status == 0, err
+    assert f'damaged Chunk at byte {offset}' in out
+    original = messages_of(sim_bag)
+    recovered = messages_of(tmp_path / 'fixed')
+    assert 0 < len(recovered) < len(original)
+    assert set(recovered) < set(original)  # nothing changed is copied
+    assert run(capsys, 'info', tmp_path / 'fixed')[0] == 0
+
+
+def test_an_uncompressed_chunk_failing_its_crc_unlocated_is_left_out(tmp_path, capsys):
+    """A byte of one message's data changed in an uncompressed chunk: every record parses and
+    matches the message index, only the CRC tells. Before, recover kept all (the index was the
+    only check); the chunk is left out now, the others kept."""
+    bag = tmp_path / 'plain'
+    with BagWriter(bag, compression='none') as writer:
+        writer.add_topic('/odom', messages.ODOMETRY)
+        for k in range(30):
+            writer.write('/odom', 1_000 + k, odometry(k, 1_000 + k))
+            if k % 10 == 9:
+                writer.flush()  # three chunks of ten
+    (mcap,) = bag.glob('*.mcap')
+    data = bytearray(mcap.read_bytes())
+    at = data.index(odometry(15, 1_015)) + 40  # inside the data of message 15 (second chunk)
+    data[at] ^= 0x01
+    mcap.write_bytes(bytes(data))
+    status, out, err = run(capsys, 'recover', bag, '-o', tmp_path / 'fixed')
+    assert status == 0, err
+    assert 'nothing shows which of its messages changed; 10 messages lost' in out
+    assert 'recovered 20 messages' in out
+    assert [t for _, t, _ in messages_of(tmp_path / 'fixed')] == (
+        [1_000 + k for k in range(30) if not 10 <= k < 20])  # fmt: skip
+
+
+def test_damage_outside_the_chunks_is_said_and_the_messages_kept(tmp_path, capsys):
+    """A byte changed in the copy of metadata.yaml inside the file: only the data section CRC
+    covers it. info says so (status 1); recover keeps every message, they are intact."""
+    bag = tmp_path / 'bag'
+    with BagWriter(bag) as writer:
+        writer.add_topic('/odom', messages.ODOMETRY)
+        for k in range(20):
+            writer.write('/odom', 1_000 + k, odometry(k, 1_000 + k))
+    (mcap,) = bag.glob('*.mcap')
+    data = bytearray(mcap.read_bytes())
+    data[data.index(b'serialized_metadata') + 40] ^= 0x20
+    mcap.write_bytes(bytes(data))
+    status, out, err = run(capsys, 'info', bag)
+    assert status == 1
+    assert f'{mcap.name}: its data section does not match its CRC, although every chunk' in out
+    status, out, err = run(capsys, 'recover', bag, '-o', tmp_path / 'fixed')
+    assert status == 0, err
+    assert 'recovered 20 messages' in out and 'the messages are intact' in out
+
+
+def test_info_counts_what_the_file_holds(sim_bag, tmp_path, capsys):
+    """metadata.yaml claiming 10 /odom messages (before: info printed 10 for a file holding
+    1501): the file's counts, and a warning line; the bag is not damaged (status 0)."""
+    bag = tmp_path / 'bag'
+    shutil.copytree(sim_bag, bag)
+    meta_path = bag / 'metadata.yaml'
+    meta = yaml.safe_load(meta_path.read_text())
+    for entry in meta['rosbag2_bagfile_information']['topics_with_message_count']:
+        if entry['topic_metadata']['name'] == '/odom':
+            entry['message_count'] = 10
+    meta_path.write_text(yaml.safe_dump(meta))
+    status, out, err = run(capsys, 'info', bag)
+    assert (status, err) == (0, '')
+    assert re.search(r'^  /odom +nav_msgs/msg/Odometry +1501$', out, re.M), out
+    assert 'warning:   metadata.yaml lists 10 messages of /odom, sim.mcap holds 1501\n' in out
+    assert 'damaged' not in out
+
+
+def test_recover_onto_a_full_disk(sim_bag, tmp_path, capsys, monkeypatch):
+    """One ERROR line naming the output (before: `ERROR: [Errno 28] No space left on device`),
+    nothing left behind."""
+    out = tmp_path / 'full' / 'out'
+    out.parent.mkdir()
+    fill_disk_under(monkeypatch, out.parent, room=100_000)
+    status, stdout, err = run(capsys, 'recover', sim_bag, '-o', out)
+    assert (status, stdout) == (1, '')
+    assert err == (
+        f'ERROR: cannot write {out}: No space left on device; nothing recovered ({out} '
+        'removed)\n'
+    )
+    assert not out.exists()
+
+
+def test_recover_onto_a_real_full_disk(sim_bag, tmp_path):
+    disk = tmp_path / 'disk'
+    status, out, err, left = run_on_small_disk(
+        disk, '64k', 'bag', 'recover', str(sim_bag), '-o', str(disk / 'out')
+    )
+    assert (status, out, left) == (1, '', '')
+    assert err == (
+        f'ERROR: cannot write {disk / "out"}: No space left on device; nothing recovered '
+        f'({disk / "out"} removed)\n'
+    )
+
+
+def test_a_symlink_loop_is_said_to_be_one(tmp_path, capsys):
+    loop = tmp_path / 'loop'
+    loop.symlink_to(loop)
+    for action in ('info', 'recover'):
+        expected = f'ERROR: {loop}: too many levels of symbolic links (a symbolic link loop)\n'
+        assert run(capsys, action, loop) == (1, '', expected)

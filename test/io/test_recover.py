@@ -34,6 +34,7 @@ from rosbags.interfaces import (
 
 from cloe_ros.cli.main import main as cloe
 from cloe_ros.core.samples import OdometrySample, PoseSample
+from cloe_ros.io.bag_info import bag_info
 from cloe_ros.io.messages import (
     ODOMETRY,
     POSE_STAMPED,
@@ -46,7 +47,6 @@ from cloe_ros.io.recover import (
     McapMessage,
     McapScan,
     RecoverError,
-    bag_info,
     default_output,
     recover_bag,
 )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -18,7 +19,7 @@ from cloe_ros.io.config import ALGORITHMS, build_configs, load_settings
 from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE
 from cloe_ros.io.outputs import OutputEncoder
 from cloe_ros.io.reader import BagError, BagReader
-from cloe_ros.io.writer import BagWriter
+from cloe_ros.io.writer import BagWriter, WriterError
 
 #: Input topics copied into the output bag (under each vehicle namespace) so it stands alone.
 COPIED = (ODOM, REFERENCE, PLAN, 'ground_truth', 'true_parameters')
@@ -79,6 +80,9 @@ class InferResult:
     duration_s: float
     wall_s: float
     written: dict[str, int] = field(default_factory=dict)
+    #: vehicles of a run that gave no estimate at all, and why (the run ends in an error when
+    #: every vehicle is one of them)
+    unusable: dict[str, str] = field(default_factory=dict)
 
 
 def check_inputs(topics: dict[str, str], path: Path) -> list[str]:
@@ -191,6 +195,7 @@ def infer_bag(
                             written[topic] += 1
 
                 count = 0
+                received: Counter = Counter()
                 for topic, log_ns, raw in reader.messages(set(route) | set(copies)):
                     if topic in copies:
                         writer.write(topic, log_ns, raw)
@@ -198,6 +203,7 @@ def infer_bag(
                     target = route.get(topic)
                     if target is None:
                         continue
+                    received[topic] += 1
                     vehicle, kind = target
                     try:
                         if kind == ODOM:
@@ -215,9 +221,21 @@ def infer_bag(
                         progress('infer', (log_ns - reader.start_ns) / span)
                 for v in found:
                     emit(v, engines[v].finish())
+                unusable = {
+                    v: _unusable(bag, v, engines[v], malformed[v], received)
+                    for v in found
+                    if engines[v].stats.steps == 0
+                }
+                if len(unusable) == len(found):
+                    raise CliError('; '.join(unusable.values()) + '.')
         except BaseException as err:
             # an output cut short looks complete to the next tool: do not leave it behind
+            writer.abort()
             shutil.rmtree(output, ignore_errors=True)
+            if isinstance(err, WriterError) and err.path == output:  # the output's own failure
+                reason = err.reason or writer.error or err
+                msg = f'cannot write {output}: {reason}. No output written ({output} removed).'
+                raise CliError(msg) from err
             if isinstance(err, CloeError):
                 msg = f'{err} No output written ({output} removed).'
                 raise type(err)(msg) from err
@@ -234,6 +252,20 @@ def infer_bag(
         duration_s=duration,
         wall_s=time.monotonic() - start,
         written=dict(written),
+        unusable=unusable,
+    )
+
+
+def _unusable(bag: Path, vehicle: str, engine: VehicleEngine, malformed: int, received) -> str:
+    """Why ``vehicle`` gave no estimate: its inputs, how many came and what was rejected."""
+    odom, ref = f'{vehicle}/{ODOM}', f'{vehicle}/{REFERENCE}'
+    why = dict(engine.stats.rejected)
+    if malformed:
+        why['malformed'] = malformed
+    detail = ', '.join(f'{k}: {n}' for k, n in sorted(why.items())) or 'none rejected'
+    return (
+        f'{bag}: no usable input for vehicle {vehicle or "/"}: {received[odom]} message(s) on '
+        f'{odom} and {received[ref]} on {ref} gave 0 estimator steps (rejected: {detail})'
     )
 
 
@@ -264,6 +296,8 @@ def run(args: argparse.Namespace) -> int:
             + (f' ({detail})' if detail else '')
             + (f', {result.time_jumps[v]} time jump(s)' if result.time_jumps[v] else '')
         )
+    for why in result.unusable.values():
+        print(f'warning: {why}', file=sys.stderr)
     per_second = result.wall_s / max(result.duration_s, 1e-9)
     print(
         f'wrote {args.output}: {sum(result.written.values())} messages; '

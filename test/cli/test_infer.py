@@ -557,3 +557,167 @@ def test_config_option(sim_bag, tmp_path, capsys):
     )
     assert status == 0, err
     assert topic_counts(overridden)['/inferred/state'] == 751
+
+
+# -- damage, what the file says, unusable input, full disk ---------------------------------------
+
+
+def test_a_bit_flip_in_compressed_chunk_data_fails_infer_and_report(sim_bag, tmp_path, capsys):
+    """One bit flipped in the second zstd chunk: the data still decompress (before, `cloe infer`
+    and `cloe report` went on with a changed message and exit 0). The chunk's CRC finds it:
+    exit 1, the chunk named, no output left."""
+    import bag_fixtures
+
+    bag = tmp_path / 'bag'
+    file, chunk = damaged_copy(sim_bag, bag)
+    bag_fixtures.flip_inside_compressed_chunk(file, chunk=1)
+    out = tmp_path / 'out'
+    expected = re.compile(
+        re.escape(f'ERROR: {file}: corrupt chunk at byte offset {chunk.chunk_start_offset} (')
+        + r'[^\n]+Chunk checksum mismatch\.[^\n]+It is chunk 2 of 3 in the file\.[^\n]+'
+        + re.escape(f'No output written ({out} removed).')
+    )
+    assert_error(capsys, expected, bag, '-o', out, '-q')
+    assert not out.exists()
+    status = main(['report', str(bag), '-o', str(tmp_path / 'report')])
+    err = capsys.readouterr().err
+    assert status == 1
+    assert f'corrupt chunk at byte offset {chunk.chunk_start_offset}' in err
+    assert 'Chunk checksum mismatch.' in err
+
+
+def test_metadata_claiming_no_messages_is_not_believed(sim_bag, tmp_path, capsys):
+    """metadata.yaml saying `message_count: 0` for every topic (before: "the bag holds no
+    messages"): the file's counts are used and the flight is inferred."""
+    bag = tmp_path / 'bag'
+    shutil.copytree(sim_bag, bag)
+    meta_path = bag / 'metadata.yaml'
+    meta = yaml.safe_load(meta_path.read_text())
+    info = meta['rosbag2_bagfile_information']
+    info['message_count'] = 0
+    for entry in info['topics_with_message_count']:
+        entry['message_count'] = 0
+    meta_path.write_text(yaml.safe_dump(meta))
+    status, out, err = run_infer(capsys, bag, '-o', tmp_path / 'out', '-q')
+    assert status == 0, err
+    assert out.startswith('/: 1501 steps, 0 input(s) rejected\n')
+    assert topic_counts(tmp_path / 'out')['/odom'] == 1501
+
+
+def rewritten_odometry(sim_bag: Path, bag: Path, how: str) -> Path:
+    """A copy of ``sim_bag`` whose every odometry message is malformed CDR or all NaN."""
+    with BagReader(sim_bag) as reader, BagWriter(bag) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        for topic, t, raw in reader.messages():
+            if topic == '/odom':
+                if how == 'malformed':
+                    raw = b'\x00\x01\x00\x00' + bytes(12)
+                else:
+                    sample = messages.decode_odometry(raw)
+                    nan = np.full(3, np.nan)
+                    sample = dataclasses.replace(sample, position=nan, linear=nan)
+                    raw = messages.encode_odometry(sample)
+            writer.write(topic, t, bytes(raw))
+    return bag
+
+
+@pytest.mark.parametrize('how', ['malformed', 'nan'])
+def test_no_usable_input_is_an_error(sim_bag, tmp_path, capsys, how):
+    """Every odometry message malformed, or all NaN: 0 steps. Before: exit 0 and an output bag
+    of copies; now exit 1 naming the bag and the topics, and no output."""
+    bag = rewritten_odometry(sim_bag, tmp_path / 'bag', how)
+    out = tmp_path / 'out'
+    rejected = 'malformed: 1501' if how == 'malformed' else r'[^)]*: 1501'
+    expected = re.compile(
+        re.escape(
+            f'ERROR: {bag}: no usable input for vehicle /: 1501 message(s) on /odom and 751 on '
+            '/reference gave 0 estimator steps (rejected: '
+        )
+        + rejected
+        + re.escape(f'). No output written ({out} removed).')
+    )
+    assert_error(capsys, expected, bag, '-o', out, '-q')
+    assert not out.exists()
+
+
+def test_one_vehicle_without_usable_input_is_a_warning(sim_bag, tmp_path, capsys):
+    """Two vehicles, one of them all malformed: the other is inferred (exit 0), the first one is
+    named in a warning."""
+    bag = tmp_path / 'bag'
+    with BagReader(sim_bag) as reader, BagWriter(bag) as writer:
+        for ns in ('/uav1', '/uav2'):
+            for name in ('/odom', '/reference'):
+                writer.add_topic(ns + name, reader.topics[name].msgtype)
+        for topic, t, raw in reader.messages(['/odom', '/reference']):
+            writer.write('/uav1' + topic, t, bytes(raw))
+            writer.write('/uav2' + topic, t, b'\x00\x01\x00\x00' if topic == '/odom' else raw)
+    status, out, err = run_infer(capsys, bag, '-o', tmp_path / 'out', '-q')
+    assert status == 0, err
+    assert '/uav1: 1501 steps' in out
+    assert err == (
+        f'warning: {bag}: no usable input for vehicle /uav2: 1501 message(s) on /uav2/odom and '
+        '751 on /uav2/reference gave 0 estimator steps (rejected: malformed: 1501)\n'
+    )
+
+
+def test_a_full_disk_gives_one_coherent_error(sim_bag, tmp_path, capsys, monkeypatch):
+    """The output's disk fills up mid-way: one ERROR line naming the output and the reason, no
+    advice to recover an output that is removed (before: "try `cloe bag recover X`" and "X
+    removed" in the same message), nothing left."""
+    import bag_fixtures
+
+    out = tmp_path / 'out'
+    bag_fixtures.fill_disk_under(monkeypatch, tmp_path, room=200_000)
+    assert_error(
+        capsys,
+        f'cannot write {out}: No space left on device. No output written ({out} removed).',
+        sim_bag, '-o', out, '-q',
+    )  # fmt: skip
+    assert not out.exists()
+
+
+def test_a_real_full_disk(sim_bag, tmp_path):
+    """The same on a real, 64 kB tmpfs."""
+    import bag_fixtures
+
+    disk = tmp_path / 'disk'
+    status, out, err, left = bag_fixtures.run_on_small_disk(
+        disk, '64k', 'infer', str(sim_bag), '-o', str(disk / 'out'), '-q'
+    )
+    assert (status, out, left) == (1, '', '')
+    assert err == (
+        f'ERROR: cannot write {disk / "out"}: No space left on device. No output written '
+        f'({disk / "out"} removed).\n'
+    )
+
+
+def test_a_symlink_loop_is_said_to_be_one(tmp_path, capsys):
+    loop = tmp_path / 'loop'
+    loop.symlink_to(loop)
+    assert_error(capsys, f'{loop}: too many levels of symbolic links (a symbolic link loop)',
+                 loop, '-o', tmp_path / 'out')  # fmt: skip
+
+
+def test_channels_of_another_encoding_are_refused(sim_bag, tmp_path, capsys):
+    """A json channel, an unknown schema encoding (before: `cannot open the bag: 'x-unknown'.`)."""
+    from mcap.writer import Writer as McapLibWriter
+
+    for message_encoding, schema_encoding, expected in [
+        ('json', 'ros2msg', "topic /odom is encoded as 'json'; only cdr"),
+        ('cdr', 'x-unknown', "topic /odom has a schema (nav_msgs/msg/Odometry) in encoding "
+                             "'x-unknown'"),
+    ]:  # fmt: skip
+        path = tmp_path / f'{schema_encoding}.mcap'
+        with path.open('wb') as fh:
+            w = McapLibWriter(fh)
+            w.start(profile='ros2', library='test')
+            for topic, msgtype in (('/odom', messages.ODOMETRY),
+                                   ('/reference', messages.POSE_STAMPED)):  # fmt: skip
+                msgdef = messages.TYPESTORE.generate_msgdef(msgtype)[0]
+                sid = w.register_schema(msgtype, schema_encoding, msgdef.encode())
+                w.register_channel(topic, message_encoding, sid, {'offered_qos_profiles': ''})
+            w.finish()
+        status, out, err = run_infer(capsys, path, '-o', tmp_path / 'out')
+        assert (status, out) == (1, '')
+        assert err.startswith(f'ERROR: {path}: {expected}'), err

@@ -5,12 +5,18 @@ works offline on files and needs no DDS domain.
 
 Each subcommand lives in its own module with ``add_parser(subparsers)`` and ``run(args) -> int``.
 Errors a user can act on derive from :class:`cloe_ros.errors.CloeError` and are printed as
-``ERROR: ...`` with exit status 1, never as a traceback.
+``ERROR: ...`` with exit status 1, never as a traceback. The exit statuses (:data:`EXIT_STATUS`,
+shown by ``cloe --help``) are those a shell expects: 2 for a command line that does not parse
+(argparse), 130 after Ctrl-C, and a reader that goes away (``cloe bag info BAG | head -1``) ends
+the command quietly with 141, the status of a tool killed by SIGPIPE (128 + 13), which is what
+``cat`` or ``grep`` give in the same pipeline.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -19,6 +25,26 @@ from cloe_ros.cli import bag, demo, evaluate, infer, paper, report
 from cloe_ros.errors import CloeError
 
 SUBCOMMANDS = (demo, paper, infer, report, evaluate, bag)
+
+#: Exit status of an error the command reports as ``ERROR: ...``.
+EXIT_ERROR = 1
+#: Exit status of a command line that does not parse (argparse's own).
+EXIT_USAGE = 2
+#: Exit status after Ctrl-C (SIGINT): 128 + 2, as the shell reports a process SIGINT ended.
+EXIT_INTERRUPTED = 128 + signal.SIGINT
+#: Exit status when standard output was closed by its reader: 128 + SIGPIPE, as standard tools.
+EXIT_PIPE_CLOSED = 128 + signal.SIGPIPE
+
+EXIT_STATUS = f"""\
+exit status:
+  0    success
+  {EXIT_ERROR}    an error: one line "ERROR: ..." on stderr says what is wrong (bad input, a
+       damaged bag, an output that exists, a full disk, ...) and nothing is left half-written
+  {EXIT_USAGE}    the command line does not parse (unknown option, missing argument)
+  {EXIT_INTERRUPTED}  interrupted by Ctrl-C (SIGINT)
+  {EXIT_PIPE_CLOSED}  standard output was closed by its reader (`cloe bag info BAG | head -1`): the
+       command stops quietly, as a tool ended by SIGPIPE
+"""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
             'the nodes on a private, localhost-only DDS domain; the other commands work offline '
             'on files and need no DDS.'
         ),
+        epilog=EXIT_STATUS,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
@@ -39,15 +67,31 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # exits with EXIT_USAGE (2) on a bad command line
     try:
-        return int(args.run(args) or 0)
+        status = int(args.run(args) or 0)
+        sys.stdout.flush()  # what is still buffered goes now, while a closed pipe can be handled
+    except BrokenPipeError:
+        return _stdout_closed()
     except (CloeError, OSError) as err:
         print(f'ERROR: {err}', file=sys.stderr)
-        return 1
+        return EXIT_ERROR
     except KeyboardInterrupt:
         print('interrupted', file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    return status
+
+
+def _stdout_closed() -> int:
+    """The reader of standard output went away: stop quietly. Python's documented way (library
+    reference, signal, "Note on SIGPIPE"): point standard output at devnull, so that the flush at
+    interpreter exit does not fail a second time."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # no real file behind sys.stdout (tests)
+        pass
+    return EXIT_PIPE_CLOSED
 
 
 if __name__ == '__main__':

@@ -1,0 +1,80 @@
+"""The `cloe` command in a shell: exit statuses as documented in `cloe --help`, quiet on a closed
+pipe."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cloe_ros.cli import bag as bag_command
+from cloe_ros.cli.main import main
+
+ROOT = Path(__file__).resolve().parents[2]
+POSITION = ROOT / 'bags' / 'position'
+
+
+def cloe(*args: str, **kwargs) -> subprocess.CompletedProcess:
+    """This source tree's `cloe` in a process of its own."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, '-m', 'cloe_ros.cli.main', *args], env=env,
+                          timeout=120, **kwargs)  # fmt: skip
+
+
+def test_help_documents_the_exit_statuses(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(['--help'])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    statuses = dict(re.findall(r'^  (\d+) +(\S.*)$', out.split('exit status:')[1], re.M))
+    assert set(statuses) == {'0', '1', '2', '130', '141'}
+    assert statuses['0'] == 'success'
+    assert 'ERROR:' in statuses['1']
+    assert 'does not parse' in statuses['2']
+    assert 'Ctrl-C' in statuses['130']
+    assert 'closed' in statuses['141']
+
+
+def test_the_statuses_are_those_documented(tmp_path, capsys, monkeypatch):
+    assert main(['bag', 'info', str(POSITION)]) == 0
+    capsys.readouterr()
+    assert main(['bag', 'info', str(tmp_path / 'nope')]) == 1
+    assert capsys.readouterr().err == f'ERROR: {tmp_path / "nope"} does not exist\n'
+    with pytest.raises(SystemExit) as info:
+        main(['bag', 'info', '--no-such-option', str(POSITION)])
+    assert info.value.code == 2
+    assert 'unrecognized arguments' in capsys.readouterr().err
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bag_command, 'bag_info', lambda path: interrupted(path))
+    assert main(['bag', 'info', str(POSITION)]) == 130
+    assert capsys.readouterr().err == 'interrupted\n'
+
+
+def test_a_closed_pipe_ends_quietly():
+    """The reader of stdout is gone before anything is written (as `| head -0`, or `| head -1`
+    once head has its line): no `ERROR: [Errno 32] Broken pipe`, no traceback, status 141 as
+    `cat` killed by SIGPIPE; the other commands' statuses are unchanged."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        proc = cloe('bag', 'info', str(POSITION), stdout=write, stderr=subprocess.PIPE)
+    finally:
+        os.close(write)
+    assert (proc.returncode, proc.stderr) == (141, b'')
+
+
+def test_head_in_a_shell_pipeline():
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    command = f'{sys.executable} -m cloe_ros.cli.main bag info {POSITION} | head -1'
+    proc = subprocess.run(['sh', '-c', command], env=env, capture_output=True, text=True,
+                          timeout=120)  # fmt: skip
+    assert proc.returncode == 0
+    assert proc.stdout == f'bag:       {POSITION}\n'
+    assert proc.stderr == ''

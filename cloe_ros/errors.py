@@ -4,13 +4,13 @@ Every error a user can act on derives from :class:`CloeError`; the ``cloe`` comm
 one ``ERROR: ...`` line (exit status 1) and a node as ``ERROR: ...`` at start-up. The tree::
 
     CloeError
-    ├── ConfigError (also a ValueError)   a setting that cannot be used       cloe_ros.errors
-    │   └── ParameterError                a node parameter: "parameter 'x': ..."  cloe_ros.ros.common
-    ├── BagError                          a bag that cannot be read           cloe_ros.io.errors
-    │   └── RecoverError                  a bag that cannot be recovered      cloe_ros.io.errors
-    ├── WriterError                       a bag that cannot be written        cloe_ros.io.errors
-    ├── MessageError                      CDR that cannot be decoded/encoded  cloe_ros.io.messages
-    └── CliError                          a command line that cannot be run   cloe_ros.cli.errors
+    ├── ConfigError (a ValueError too)  a setting that cannot be used        cloe_ros.errors
+    │   └── ParameterError              a node parameter ("parameter 'x': ")  cloe_ros.ros.common
+    ├── BagError                        a bag that cannot be read            cloe_ros.io.errors
+    │   └── RecoverError                a bag that cannot be recovered       cloe_ros.io.errors
+    ├── WriterError                     a bag that cannot be written         cloe_ros.io.errors
+    ├── MessageError                    CDR that cannot be decoded/encoded   cloe_ros.io.messages
+    └── CliError                        a command line that cannot be run    cloe_ros.cli.errors
 
 ``ConfigError`` covers every invalid setting: the core's configuration dataclasses, the settings
 of ``cloe infer --config`` (``cloe_ros.io.config.SettingsError`` is the same class, kept under

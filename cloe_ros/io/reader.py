@@ -40,8 +40,18 @@ from typing import TYPE_CHECKING, Any, BinaryIO
 
 import yaml
 from mcap.exceptions import McapError
-from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, Footer, Header, Message, MessageIndex
-from mcap.records import Schema, Statistics
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Schema,
+    Statistics,
+)
 from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import parse_qos
@@ -103,7 +113,8 @@ def missing_message(path: Path) -> str:
         if err.errno == errno.ELOOP:
             return f'{path}: too many levels of symbolic links (a symbolic link loop)'
         if os.path.islink(path):
-            return f'{path} is a broken symbolic link (to {os.readlink(path)}, which does not exist)'
+            target = os.readlink(path)
+            return f'{path} is a broken symbolic link (to {target}, which does not exist)'
         if err.errno in (errno.ENOENT, errno.ENOTDIR):
             return f'{path} does not exist'
         return f'cannot access {path}: {err.strerror or err}'
@@ -199,7 +210,8 @@ def _read_summary_of(fh: BinaryIO, file: Path, size: int, bag: Path, label: Path
     data_start = mr.MAGIC_SIZE
     if footer.summary_start:
         if not data_start < footer.summary_start <= footer_at:
-            msg = f'{label}: its footer points outside the file ({footer.summary_start}): {damaged}'
+            where = footer.summary_start
+            msg = f'{label}: its footer points outside the file ({where}): {damaged}'
             raise BagError(msg)
         fh.seek(footer.summary_start)
         summary = _read_exact(fh, footer_at - footer.summary_start, 'the summary', label)
@@ -208,7 +220,8 @@ def _read_summary_of(fh: BinaryIO, file: Path, size: int, bag: Path, label: Path
             if crc != footer.summary_crc:
                 msg = (
                     f'{label}: its summary (the index at the end of the file) does not match '
-                    f'its CRC (CRC-32 {crc:#010x}, the footer records {footer.summary_crc:#010x}): '
+                    f'its CRC (CRC-32 {crc:#010x}, the footer records '
+                    f'{footer.summary_crc:#010x}): '
                     f'{damaged}'
                 )
                 raise BagError(msg)
@@ -602,7 +615,9 @@ class BagReader:
         files = ', '.join(f.name for f in self.files)
         for name, info in self.topics.items():
             if name not in meta_types:
-                out.append(f'{name} ({info.count} messages) is in {files} but not in metadata.yaml')
+                out.append(
+                    f'{name} ({info.count} messages) is in {files} but not in metadata.yaml'
+                )
                 continue
             if meta_types[name] != info.msgtype:
                 out.append(
@@ -728,7 +743,8 @@ class BagReader:
         chunks = [
             c
             for c in mcap.chunk_indexes
-            if not c.message_index_offsets or any(cid in channels for cid in c.message_index_offsets)
+            if not c.message_index_offsets
+            or any(cid in channels for cid in c.message_index_offsets)
         ]
         # (log time, chunk offset, chunk, sequence in the chunk (-1: its start), topic, raw)
         heap: list[tuple] = [
@@ -951,8 +967,8 @@ def _check_mcap_file(file: Path, bag: Path, label: Path | None = None) -> None:
         raise BagError(msg)
     if tail != MCAP_MAGIC:
         msg = (
-            f'{file_label} is truncated: it ends without the MCAP footer ({size} bytes; the recording '
-            'was cut off, e.g. the recorder was killed or the disk filled up). Run '
+            f'{file_label} is truncated: it ends without the MCAP footer ({size} bytes; the '
+            'recording was cut off, e.g. the recorder was killed or the disk filled up). Run '
             f'`cloe bag recover {bag}` to rescue the complete messages.'
         )
         raise BagError(msg)

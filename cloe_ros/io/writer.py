@@ -6,8 +6,8 @@ fills the CRCs MCAP defines: each chunk's CRC of its uncompressed records, the d
 (``DataEnd``) and the summary CRC (footer). Readers that check them (``cloe bag info``,
 ``cloe infer``, ``cloe bag recover``, the mcap tools) find a changed bit anywhere in the file,
 zstd-compressed chunk data included. The file follows the MCAP ``ros2`` profile: ``ros2msg``
-schemas, ``cdr`` channels carrying ``offered_qos_profiles``, a ``rosbag2`` metadata record; rosbags,
-the mcap readers and ``ros2 bag`` read it.
+schemas, ``cdr`` channels carrying ``offered_qos_profiles``, a ``rosbag2`` metadata record;
+rosbags, the mcap readers and ``ros2 bag`` read it.
 
 :meth:`BagWriter.flush` closes the pending chunk and hands the file to the operating system.
 Whatever was written before the last ``flush()`` survives a SIGKILL of the process: the ``.mcap``
@@ -149,10 +149,11 @@ class BagWriter:
         self._file: BinaryIO | None = None
         try:
             self._file = self.mcap_path.open('xb')
+            zstd = compression == 'zstd'
             self._mcap = McapWriter(
                 self._file,
                 chunk_size=CHUNK_SIZE,
-                compression=CompressionType.ZSTD if compression == 'zstd' else CompressionType.NONE,
+                compression=CompressionType.ZSTD if zstd else CompressionType.NONE,
                 enable_crcs=True,
                 enable_data_crcs=True,
             )
@@ -290,7 +291,8 @@ class BagWriter:
             msgdef = TYPESTORE.generate_msgdef(msgtype, ros_version=2)[0]
             rihs01 = TYPESTORE.hash_rihs01(msgtype)
         qos = _offered_qos(name, offered_qos)
-        encoding = SchemaEncoding.ROS2IDL if msgdef.startswith(_IDL_PREFIX) else SchemaEncoding.ROS2
+        idl = msgdef.startswith(_IDL_PREFIX)
+        encoding = SchemaEncoding.ROS2IDL if idl else SchemaEncoding.ROS2
         try:
             schema_id = self._schemas.get((msgtype, msgdef))
             if schema_id is None:

@@ -693,7 +693,7 @@ def test_a_damaged_summary_is_found_when_the_bag_is_opened(tmp_path):
     data[at] ^= 0x01
     mcap.write_bytes(bytes(data))
     text = error_of(tmp_path / 'bag')
-    assert text.startswith(f'{mcap}: its summary (the index at the end of the file) does not match')
+    assert text.startswith(f'{mcap}: its summary (the index at the end of the file) does not')
     assert f'cloe bag recover {tmp_path / "bag"}' in text
 
 
@@ -714,7 +714,9 @@ def test_counts_come_from_the_file(tmp_path):
         assert bag.topics['/reference'].count == n_ref
         assert bag.message_count == len(expected)
         assert (bag.start_ns, bag.end_ns) == (expected[0][1], expected[-1][1])
-        assert bag.metadata_mismatch == ['metadata.yaml lists 10 messages of /odom, bag.mcap holds 100']
+        assert bag.metadata_mismatch == [
+            'metadata.yaml lists 10 messages of /odom, bag.mcap holds 100'
+        ]
         assert len(list(bag.messages())) == len(expected)
 
     edit_metadata(tmp_path / 'bag', lambda m: m['topics_with_message_count'][0].update(

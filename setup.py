@@ -27,9 +27,11 @@ setup(
         'matplotlib>=3.6',
         'pyyaml>=6',
         'rosbags>=0.10',
+        # MCAP records and CRCs: the writer of the package's bags, the reader's record decoding
+        'mcap>=1.6',
     ],
     extras_require={
-        'test': ['pytest>=7', 'mcap>=1.1', 'mcap-ros2-support>=0.5'],
+        'test': ['pytest>=7', 'mcap-ros2-support>=0.5'],
     },
     python_requires='>=3.10',
     zip_safe=True,

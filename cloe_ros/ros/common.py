@@ -189,7 +189,8 @@ def _init_quietly(argv: list[str]) -> None:
             text = held.read().decode(errors='replace')
             if failed:
                 text = ''.join(
-                    line for line in text.splitlines(keepends=True)
+                    line
+                    for line in text.splitlines(keepends=True)
                     if 'Failed to parse global arguments' not in line
                 )
             sys.stderr.write(text)

@@ -606,6 +606,7 @@ def report_vehicle(vehicle: VehicleData, folder: Path, progress=None) -> Vehicle
         tables += _parameter_tables(vehicle, finals, models)
 
     tell('score', 1.0)
+    tell('figures', 0.0)
     n_figures = 5 + bool(preds)  # flight_figures draws at most 5
     paths = flight_figures(  # outputs named by their label
         vehicle, folder, progress=lambda done: tell('figures', done / n_figures)

@@ -15,6 +15,9 @@ setup(
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', glob('config/*.yaml')),
+        (f'share/{PACKAGE}/launch', glob('launch/*.launch.yaml')),
+        (f'share/{PACKAGE}/rviz', glob('rviz/*.rviz')),
+        (f'share/{PACKAGE}/foxglove', glob('foxglove/*.json')),
         *[
             (f'share/{PACKAGE}/bags/{os.path.basename(os.path.normpath(d))}', glob(f'{d}*'))
             for d in sorted(glob('bags/*/'))

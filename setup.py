@@ -16,8 +16,8 @@ setup(
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', glob('config/*.yaml')),
         (f'share/{PACKAGE}/launch', glob('launch/*.launch.yaml')),
-        (f'share/{PACKAGE}/rviz', glob('rviz/*.rviz')),
-        (f'share/{PACKAGE}/foxglove', glob('foxglove/*.json')),
+        (f'share/{PACKAGE}/rviz', glob('viewers/rviz/*.rviz')),
+        (f'share/{PACKAGE}/foxglove', glob('viewers/foxglove/*.json')),
         *[
             (f'share/{PACKAGE}/bags/{os.path.basename(os.path.normpath(d))}', glob(f'{d}*'))
             for d in sorted(glob('bags/*/'))

@@ -1,4 +1,5 @@
-"""Write the RViz configurations (rviz/*.rviz) and Foxglove layouts (foxglove/*.json) of the
+"""Write the RViz configurations (viewers/rviz/*.rviz) and Foxglove layouts
+(viewers/foxglove/*.json) of the
 package's topics, one pair per session the launch files start:
 
 * ``demo``: one un-namespaced vehicle, three inference outputs (``/cloe``, ``/cloe_sm``,
@@ -281,8 +282,8 @@ def render(session: Session) -> dict[Path, str]:
     rviz = header + yaml.safe_dump(rviz_config(session), sort_keys=False, width=99)
     layout = json.dumps(foxglove_layout(session), indent=2) + '\n'
     return {
-        REPO / 'rviz' / f'cloe_{session.name}.rviz': rviz,
-        REPO / 'foxglove' / f'cloe_{session.name}.json': layout,
+        REPO / 'viewers' / 'rviz' / f'cloe_{session.name}.rviz': rviz,
+        REPO / 'viewers' / 'foxglove' / f'cloe_{session.name}.json': layout,
     }
 
 
@@ -297,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
                 if not path.is_file() or path.read_text() != text:
                     stale.append(path)
                 continue
-            path.parent.mkdir(exist_ok=True)
+            path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text)
             print(f'wrote {path.relative_to(REPO)}')
     for path in stale:

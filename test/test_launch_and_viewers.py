@@ -37,8 +37,8 @@ REPO = Path(__file__).resolve().parent.parent
 LAUNCH = REPO / 'launch'
 #: Launch file -> the viewer files of the same session (scripts/make_viewer_configs.py).
 SESSIONS = {
-    'demo.launch.yaml': ('rviz/cloe_demo.rviz', 'foxglove/cloe_demo.json'),
-    'lab.launch.yaml': ('rviz/cloe_lab.rviz', 'foxglove/cloe_lab.json'),
+    'demo.launch.yaml': ('viewers/rviz/cloe_demo.rviz', 'viewers/foxglove/cloe_demo.json'),
+    'lab.launch.yaml': ('viewers/rviz/cloe_lab.rviz', 'viewers/foxglove/cloe_lab.json'),
 }
 #: Parameters a launch file sets that a node does not declare yet: cloe_inference's
 #: ``discover`` (discovery of vehicles, being added to the inference node).
@@ -406,13 +406,18 @@ def shipped() -> list[str]:
     return files + [f for pair in SESSIONS.values() for f in pair]
 
 
+def installed_as(relative: str) -> str:
+    """Where a shipped file goes under share/cloe_ros (viewers/rviz/x.rviz -> rviz/x.rviz)."""
+    return relative.removeprefix('viewers/')
+
+
 def test_setup_installs_every_file():
     """setup.py's data_files put each file under share/cloe_ros/<folder>/ (colcon and pip)."""
     setup = (REPO / 'setup.py').read_text()
     for relative in shipped():
-        folder = Path(relative).parent.name
-        pattern = {'launch': 'launch/*.launch.yaml', 'rviz': 'rviz/*.rviz',
-                   'foxglove': 'foxglove/*.json'}[folder]  # fmt: skip
+        folder = Path(installed_as(relative)).parent.name
+        pattern = {'launch': 'launch/*.launch.yaml', 'rviz': 'viewers/rviz/*.rviz',
+                   'foxglove': 'viewers/foxglove/*.json'}[folder]  # fmt: skip
         assert f"(f'share/{{PACKAGE}}/{folder}', glob('{pattern}'))" in setup, relative
         assert Path(relative).match(pattern)
 
@@ -424,6 +429,6 @@ def test_installed_under_the_prefix():
     if not (share / 'package.xml').is_file():
         pytest.skip(f'cloe_ros is not installed into {sys.prefix} (run `make install`)')
     for relative in shipped():
-        installed = share / relative
+        installed = share / installed_as(relative)
         assert installed.is_file(), f'{installed} is missing: run `make install`'
         assert installed.read_text() == (REPO / relative).read_text(), f'{installed} is stale'

@@ -492,7 +492,7 @@ def test_a_failed_inference_leaves_nothing_behind(input_bag, tmp_path, capsys):
     and neither the report folder nor its inferred_bag/ is left."""
     bag = malformed_odometry_bag(input_bag, tmp_path / 'malformed')
     folder = tmp_path / 'new' / 'report'
-    status, out, err = run_report(capsys, bag, '-o', folder, '-q')
+    status, _out, err = run_report(capsys, bag, '-o', folder, '-q')
     assert status == 1
     errors = [line for line in err.splitlines() if 'ERROR' in line]
     assert len(errors) == 1 and errors[0].startswith(f'ERROR: {bag}'), err

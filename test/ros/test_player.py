@@ -7,6 +7,7 @@ status 1 and a message saying what is wrong.
 
 from __future__ import annotations
 
+import itertools
 import signal
 from pathlib import Path
 
@@ -544,7 +545,7 @@ def test_start_offset(ros, tmp_path):
     clock = [decode_clock(raw) for _, raw in arrivals.msgs['/clock']]
     assert clock[0] == BAG_START_NS + 20 * 10**7
     assert clock[-1] == BAG_START_NS + 49 * 10**7
-    assert all(b >= a for a, b in zip(clock, clock[1:]))
+    assert all(b >= a for a, b in itertools.pairwise(clock))
 
 
 def test_loop_plays_every_pass_from_the_offset(ros, tmp_path):
@@ -573,7 +574,7 @@ def test_loop_plays_every_pass_from_the_offset(ros, tmp_path):
     assert got == (one_pass * (len(got) // 20 + 1))[: len(got)]
     clock = [decode_clock(raw) for _, raw in arrivals.msgs['/clock']]
     start, end = BAG_START_NS + 30 * 10**7, BAG_START_NS + 49 * 10**7
-    backwards = [(a, b) for a, b in zip(clock, clock[1:]) if b < a]
+    backwards = [(a, b) for a, b in itertools.pairwise(clock) if b < a]
     assert len(backwards) >= 2  # two passes completed at least
     assert all(a == end and b == start for a, b in backwards)
     assert min(clock) == start and max(clock) == end
@@ -636,7 +637,7 @@ def test_pause_and_resume_by_service(ros, tmp_path):
         assert positions(arrivals) == list(map(float, range(300)))
         assert not player.failed and player.published == 300
         clock = [decode_clock(raw) for _, raw in arrivals.msgs['/clock']]
-        assert all(b >= a for a, b in zip(clock, clock[1:]))
+        assert all(b >= a for a, b in itertools.pairwise(clock))
         assert call(ros, '/bag_player/resume').message.startswith('not paused')
     finally:
         ros.executor.remove_node(player)

@@ -10,8 +10,8 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
-from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
 from rclpy.parameter import Parameter
+from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
 from rosgraph_msgs.msg import Clock
 
 from cloe_ros.ros.common import qos

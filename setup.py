@@ -32,7 +32,9 @@ setup(
         'rosbags>=0.10',
     ],
     extras_require={
-        'test': ['pytest>=7', 'mcap>=1.1', 'mcap-ros2-support>=0.5'],
+        # `cloe live`: the Foxglove WebSocket server (a 19 MB wheel, 53 MB installed)
+        'live': ['foxglove-sdk>=0.30'],
+        'test': ['pytest>=7', 'mcap>=1.1', 'mcap-ros2-support>=0.5', 'websockets>=12'],
     },
     python_requires='>=3.10',
     zip_safe=True,

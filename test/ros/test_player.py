@@ -301,13 +301,15 @@ def test_damaged_chunk_mid_play(ros, tmp_path):
     data[first + 15 : first + 23] = data[second + 15 : second + 23]  # log time
     mcap.write_bytes(bytes(data))
     arrivals = Arrivals(ros.node, {'/odom': Odometry})
+    # the publisher keeps every message until acknowledged: at 100x, a subscriber short of CPU
+    # falls more than the default 1000 messages behind
     player = NodeProcess(
         'bag_player',
-        {'bag': str(bag), 'rate': 100.0, 'wait_for_subscribers': 1},
+        {'bag': str(bag), 'rate': 100.0, 'wait_for_subscribers': 1, 'qos_depth': 10_000},
         ros.domain,
         tmp_path,
     )
-    status = play_to_end(ros, player, timeout=15)
+    status = play_to_end(ros, player, timeout=30)
     err = player.stderr_path.read_text()
     assert status == 1, output(player)
     assert f'{mcap}: corrupt chunk at byte offset {chunks[1].chunk_start_offset}' in err

@@ -15,6 +15,9 @@ setup(
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', glob('config/*.yaml')),
+        (f'share/{PACKAGE}/launch', glob('launch/*.launch.yaml')),
+        (f'share/{PACKAGE}/rviz', glob('viewers/rviz/*.rviz')),
+        (f'share/{PACKAGE}/foxglove', glob('viewers/foxglove/*.json')),
         *[
             (f'share/{PACKAGE}/bags/{os.path.basename(os.path.normpath(d))}', glob(f'{d}*'))
             for d in sorted(glob('bags/*/'))
@@ -31,7 +34,9 @@ setup(
         'mcap>=1.6',
     ],
     extras_require={
-        'test': ['pytest>=7', 'mcap-ros2-support>=0.5'],
+        # `cloe live`: the Foxglove WebSocket server (a 19 MB wheel, 53 MB installed)
+        'live': ['foxglove-sdk>=0.30'],
+        'test': ['pytest>=7', 'mcap-ros2-support>=0.5', 'websockets>=12'],
     },
     python_requires='>=3.10',
     zip_safe=True,

@@ -5,7 +5,8 @@ one ``ERROR: ...`` line (exit status 1) and a node as ``ERROR: ...`` at start-up
 
     CloeError
     ├── ConfigError (a ValueError too)  a setting that cannot be used        cloe_ros.errors
-    │   └── ParameterError              a node parameter ("parameter 'x': ")  cloe_ros.ros.common
+    │   ├── ParameterError              a node parameter ("parameter 'x': ")  cloe_ros.ros.common
+    │   └── StartupError                a node's command line (--params-file)  cloe_ros.ros.common
     ├── BagError                        a bag that cannot be read            cloe_ros.io.errors
     │   └── RecoverError                a bag that cannot be recovered       cloe_ros.io.errors
     ├── WriterError                     a bag that cannot be written         cloe_ros.io.errors

@@ -5,6 +5,7 @@ recorded bag, and plots. The only ``cloe`` subcommand that needs DDS."""
 from __future__ import annotations
 
 import argparse
+import re
 import signal
 import time
 from datetime import datetime
@@ -16,6 +17,9 @@ from cloe_ros.cli.processes import NodeProcess, reserve_domain_id, ros_env
 from cloe_ros.core.experiments import PAPER_TABLES
 from cloe_ros.core.simulator import SCENARIOS
 from cloe_ros.io.dataset import load_flight
+
+#: As quadrotor_sim: behind when it achieves less than this fraction of the factor asked for.
+RTF_TOLERANCE = 0.9
 
 #: The paper's two algorithms side by side, and the package's identifier that converges.
 ALGORITHMS = (('cloe', 'CLOE'), ('cloe_sm', 'CLOE-SM'), ('cloe_iv', 'CLOE-IV'))
@@ -69,6 +73,31 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def _start(name, params, env, logs: Path, node_name=None) -> NodeProcess:
     return NodeProcess(name, params, env, logs / f'{node_name or name}.log', node_name)
+
+
+#: quadrotor_sim's last line: ``done: 50 s simulated in 26.10 s of wall time (real-time factor
+#: 1.92, asked 2)``.
+_DONE = re.compile(r'done: \S+ s simulated in (\S+) s of wall time \(real-time factor (\S+),')
+
+
+def achieved_factor(sim_log: str, asked: float) -> str:
+    """What the simulator says it achieved, in words (from its ``done:`` line)."""
+    found = _DONE.search(sim_log)
+    if found is None:
+        return 'the simulator did not report its real-time factor'
+    wall, factor = found.groups()
+    text = f'real-time factor achieved {factor} (asked {asked:g}, {wall} s of wall time)'
+    try:
+        behind = float(factor) < RTF_TOLERANCE * asked
+    except ValueError:
+        behind = False
+    if behind:
+        text += (
+            f'\n  the simulator could not hold {asked:g}x real time (a busy machine?). The '
+            'results do not depend on it: the nodes work on message stamps, not on the wall '
+            'clock'
+        )
+    return text
 
 
 def run(args: argparse.Namespace) -> int:
@@ -132,7 +161,11 @@ def run(args: argparse.Namespace) -> int:
             ) from err
         if status != 0:
             raise CliError(f'the simulator failed (status {status}):\n{sim.output()}')
-        print(f'simulation done in {time.monotonic() - start:.1f} s; stopping the nodes')
+        print(
+            f'simulation done in {time.monotonic() - start:.1f} s; '
+            + achieved_factor(sim.output(), args.speed)
+        )
+        print('stopping the nodes')
         time.sleep(1.0)  # let the last messages reach the recorder
     finally:
         for p in reversed(procs):

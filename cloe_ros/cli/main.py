@@ -21,10 +21,10 @@ import sys
 from collections.abc import Sequence
 
 from cloe_ros import __version__
-from cloe_ros.cli import bag, demo, evaluate, infer, paper, report
+from cloe_ros.cli import bag, demo, evaluate, infer, live, paper, report
 from cloe_ros.errors import CloeError
 
-SUBCOMMANDS = (demo, paper, infer, report, evaluate, bag)
+SUBCOMMANDS = (demo, paper, infer, report, evaluate, bag, live)
 
 #: Exit status of an error the command reports as ``ERROR: ...``.
 EXIT_ERROR = 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import matplotlib
@@ -724,7 +725,12 @@ def prediction_figure(
     return _save(fig, path)
 
 
-def flight_figures(vehicle, out_dir: Path, outputs: dict[str, str] | None = None) -> list[Path]:
+def flight_figures(
+    vehicle,
+    out_dir: Path,
+    outputs: dict[str, str] | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> list[Path]:
     """Errors, states, parameters (and their error when the truth is known) and paths of one
     vehicle of a bag (see :mod:`cloe_ros.io.dataset`) as PNG files.
 
@@ -733,16 +739,22 @@ def flight_figures(vehicle, out_dir: Path, outputs: dict[str, str] | None = None
         out_dir: Folder for the PNG files (``<vehicle>_errors.png``, ``_states``, ``_parameters``,
             ``_parameter_error``, ``_path``; the vehicle is ``vehicle`` when un-namespaced).
         outputs: Output namespaces to show and their labels (all found by default).
+        progress: Called with the number of figures done (of 5) after each one.
 
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     names = outputs or {n: o.label for n, o in vehicle.outputs.items()}
     tag = vehicle.namespace.strip('/').replace('/', '_') or 'vehicle'
-    paths = [
-        flight_errors_figure(vehicle, names, out_dir / f'{tag}_errors.png'),
-        flight_states_figure(vehicle, names, out_dir / f'{tag}_states.png'),
-        flight_parameters_figure(vehicle, names, out_dir / f'{tag}_parameters.png'),
-        flight_parameter_error_figure(vehicle, names, out_dir / f'{tag}_parameter_error.png'),
-        flight_path_figure(vehicle, names, out_dir / f'{tag}_path.png'),
-    ]
+    figures = (
+        (flight_errors_figure, 'errors'),
+        (flight_states_figure, 'states'),
+        (flight_parameters_figure, 'parameters'),
+        (flight_parameter_error_figure, 'parameter_error'),
+        (flight_path_figure, 'path'),
+    )
+    paths = []
+    for done, (figure, kind) in enumerate(figures, start=1):
+        paths.append(figure(vehicle, names, out_dir / f'{tag}_{kind}.png'))
+        if progress is not None:
+            progress(done)
     return [p for p in paths if p is not None]

@@ -11,6 +11,9 @@ bag of outputs alone (``cloe infer --no-inputs``) is refused: nothing to score t
 
 FOLDER receives ``index.html`` (self-contained: CSS inline, figures embedded as base64 PNG),
 ``summary.md`` (the same tables, figures linked), ``report.json`` (the numbers) and the PNG files.
+A report that fails leaves nothing behind: what it wrote into FOLDER is removed (FOLDER too, if it
+created it). Each phase (inference, reading the bag, scoring, figures per vehicle, writing) shows
+progress on stderr unless ``--quiet``.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from cloe_ros.core.metrics import (
     subsystem_rmse,
 )
 from cloe_ros.core.model import BLOCK_SLICES, BLOCKS, N_PARAMS, PARAMETER_NAMES, block_matrices
+from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
 from cloe_ros.io.config import ALGORITHMS, DEFAULTS, build_configs, load_settings
 from cloe_ros.io.dataset import Predictions, Series, VehicleData, load_flight, vehicle_namespaces
@@ -517,8 +521,9 @@ def _caption(kind: str, vehicle: VehicleData, measurement_error: bool = False) -
     return captions.get(kind, '')
 
 
-def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
-    """Tables, figures and numbers of one vehicle."""
+def report_vehicle(vehicle: VehicleData, folder: Path, progress=None) -> VehicleReport:
+    """Tables, figures and numbers of one vehicle; ``progress(stage, fraction)`` (a
+    :class:`~cloe_ros.cli.progress.ProgressBar`) is told how scoring and the figures go."""
     from cloe_ros.cli.plots import flight_figures, model_columns, prediction_figure
 
     label = vehicle.namespace or '/'
@@ -547,7 +552,13 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     finals: dict[str, np.ndarray] = {}
     models: dict[str, np.ndarray] = {}
     preds: dict[str, PredictionScore] = {}
-    for name, out in sorted(vehicle.outputs.items()):
+
+    def tell(stage: str, fraction: float) -> None:
+        if progress is not None:
+            progress(f'{stage} {label}', fraction)
+
+    tell('score', 0.0)
+    for k, (name, out) in enumerate(sorted(vehicle.outputs.items())):
         entry: dict = {'algorithm': out.algorithm, 'score': None, 'final_parameters': None,
                        'prediction': None}  # fmt: skip
         score = score_output(vehicle, name)
@@ -577,6 +588,7 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
                 'paths': p.counts,
             }
         data['outputs'][name] = entry
+        tell('score', (k + 1) / (len(vehicle.outputs) + 1))
     measurement = None
     if has_truth:
         err, t_ns = state_errors(vehicle.odom, vehicle.ground_truth)
@@ -593,7 +605,12 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
     if finals:
         tables += _parameter_tables(vehicle, finals, models)
 
-    paths = flight_figures(vehicle, folder)  # outputs named by their label
+    tell('score', 1.0)
+    tell('figures', 0.0)
+    n_figures = 5 + bool(preds)  # flight_figures draws at most 5
+    paths = flight_figures(  # outputs named by their label
+        vehicle, folder, progress=lambda done: tell('figures', done / n_figures)
+    )
     if preds:
         tag = vehicle.namespace.strip('/').replace('/', '_') or 'vehicle'
         paths.append(prediction_figure(
@@ -603,6 +620,7 @@ def report_vehicle(vehicle: VehicleData, folder: Path) -> VehicleReport:
             folder / f'{tag}_prediction.png',
             f'{label}: prediction RMSE against the measured position',
         ))  # fmt: skip
+    tell('figures', 1.0)
     figures = []
     for path in paths:
         kind = re.sub(r'^.*?_(errors|states|parameters|parameter_error|path|prediction)\.png$',
@@ -764,21 +782,103 @@ def run(args: argparse.Namespace) -> int:
             'and --config only apply to input bags; run `cloe infer` on it with the new settings '
             'first, or report on it without them'
         )
+    cleanup = _Cleanup(folder)
     _prepare_folder(folder, bag, args.force)
+    bar = ProgressBar(enabled=not args.quiet)
+    try:
+        span = (bag_start_ns, bag_duration, message_count)
+        return _report(args, bag, folder, settings, topics, counts, outputs, bar, start, span)
+    except BaseException:
+        bar.close()
+        cleanup.undo()
+        raise
+    finally:
+        bar.close()
 
+
+class _Cleanup:
+    """What a failed report removes from its folder: everything it created there (the folder
+    too, and the parents it made, when they did not exist), and under ``--force`` the files it
+    replaces (the inferred bag, the report files, figures written since the start)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.start = time.time()
+        self.before = {p.name for p in folder.iterdir()} if folder.is_dir() else set()
+        created = folder
+        while not created.parent.exists() and created.parent != created:
+            created = created.parent
+        self.created = None if folder.exists() else created
+
+    def undo(self) -> None:
+        if not self.folder.is_dir():
+            return
+        replaced = {INFERRED_BAG, *REPORT_FILES}
+        for entry in self.folder.iterdir():
+            new = entry.name not in self.before or entry.name in replaced
+            if not new and entry.suffix == '.png':
+                new = entry.stat().st_mtime >= self.start
+            if not new:
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+        if self.created is not None:
+            # the folders the report made, if nothing else was put into them meanwhile
+            path = self.folder
+            while True:
+                try:
+                    path.rmdir()
+                except OSError:
+                    break
+                if path == self.created:
+                    break
+                path = path.parent
+
+
+def _nothing_inferred(bag: Path, inference: InferResult, counts: dict[str, int]) -> str | None:
+    """Why no vehicle of the run got a single estimate, naming the bag and topics (None if one
+    did)."""
+    if any(inference.steps.values()):
+        return None
+    parts = []
+    for v in inference.vehicles:
+        rejected = sum(inference.rejected[v].values())
+        why = ', '.join(f'{k}: {n}' for k, n in sorted(inference.rejected[v].items()))
+        parts.append(
+            f'{v}/odom ({counts.get(f"{v}/odom", 0)} messages) and {v}/reference '
+            f'({counts.get(f"{v}/reference", 0)}): {inference.malformed[v]} malformed, '
+            f'{rejected} rejected' + (f' ({why})' if why else '')
+        )
+    return f'{bag}: the inference produced no estimate, nothing to report: ' + '; '.join(parts)
+
+
+def _report(args, bag, folder, settings, topics, counts, outputs, bar, start, span) -> int:
+    """The report's work once its folder is ready (``run`` checks everything before);
+    ``span``: the bag's first log time (ns), duration (s) and message count."""
+    bag_start_ns, bag_duration, message_count = span
     inference = None
     source = bag
     if not outputs:
         inferred = folder / INFERRED_BAG
-        bar = ProgressBar(enabled=not args.quiet)
-        try:
-            inference = infer_bag(bag, inferred, settings, progress=bar)
-        finally:
-            bar.close()
+        inference = infer_bag(bag, inferred, settings, progress=bar)
+        reason = _nothing_inferred(bag, inference, counts)
+        if reason is not None:
+            raise CliError(reason)
         source = inferred
-    vehicles = load_flight(source)
-    diagnostics = {} if inference is not None else _diagnostics(bag, topics)
-    reports = [report_vehicle(vehicles[ns], folder) for ns in sorted(vehicles)]
+    bar('read the bag', 0.0)
+    try:
+        vehicles = load_flight(source)
+    except CloeError as err:
+        raise CliError(f'{source}: {err}') from err
+    bar('read the bag', 1.0)
+    diagnostics = {}
+    if inference is None:
+        bar('read /diagnostics', 0.0)
+        diagnostics = _diagnostics(bag, topics)
+        bar('read /diagnostics', 1.0)
+    reports = [report_vehicle(vehicles[ns], folder, bar) for ns in sorted(vehicles)]
     for r in reports:
         if inference is not None and r.main is None and r.data.get('odom_messages'):
             r.remark = 'the inference produced no estimate (see the inputs table)'
@@ -820,6 +920,7 @@ def run(args: argparse.Namespace) -> int:
         general.append(inputs)
 
     title = f'cloe report: {bag.resolve().parent.name}/{bag.resolve().name}'
+    bar('write the report', 0.0)
     write_html(folder / 'index.html', title, meta, general, reports)
     write_markdown(folder / 'summary.md', title, meta, general, reports)
     numbers = {
@@ -843,6 +944,8 @@ def run(args: argparse.Namespace) -> int:
         'vehicles': {r.label: r.data for r in reports},
     }
     (folder / 'report.json').write_text(json.dumps(_finite(numbers), indent=2) + '\n')
+    bar('write the report', 1.0)
+    bar.close()
 
     print(f'{bag}: {bag_duration:.1f} s, {message_count} messages; inference: {how}')
     for r in reports:

@@ -5,10 +5,15 @@ The only modules that import rclpy are under ``cloe_ros.ros``.
 
 from __future__ import annotations
 
+import os
+import re
 import sys
+import tempfile
 from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 
 import rclpy
+import yaml
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -37,9 +42,21 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
     SIGINT and SIGTERM reach rclpy as ``ExternalShutdownException``; ``destroy_node`` runs in
     ``finally`` so nodes that hold files (the recorder) close them completely. A node can end the
     process by calling ``rclpy.shutdown(context=...)`` (e.g. a player at the end of its bag).
-    Returns the exit status: 0, or 1 when the node could not be created.
+    Returns the exit status: 0, or 1 when the node could not be created. A command line rclpy
+    cannot start with (a ``--params-file`` that is missing or malformed, a bad ``--ros-args``
+    argument) is reported in one ``ERROR:`` line, as a bad parameter is, instead of rcl's
+    traceback.
     """
-    rclpy.init(args=args if args is not None else sys.argv)
+    argv = list(args if args is not None else sys.argv)
+    try:
+        check_params_files(argv)
+        _init_quietly(argv)
+    except StartupError as err:
+        print(f'ERROR: {err}', file=sys.stderr)
+        return 1
+    except RuntimeError as err:  # RCLError: what rcl refuses that the checks above let through
+        print(f'ERROR: cannot start: {_rcl_reason(err)}', file=sys.stderr)
+        return 1
     node = None
     status = 0
     try:
@@ -63,6 +80,129 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
             node.destroy_node()
         rclpy.try_shutdown()
     return status
+
+
+class StartupError(ConfigError):
+    """The command line names something the node cannot start with (reported, exit status 1)."""
+
+
+def params_files(argv: Sequence[str]) -> list[str]:
+    """The files given with ``--params-file`` inside ``--ros-args`` sections of ``argv``."""
+    files, in_ros_args, i = [], False, 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg == '--ros-args':
+            in_ros_args = True
+        elif arg == '--':
+            in_ros_args = False
+        elif in_ros_args and arg == '--params-file':
+            if i + 1 >= len(argv):
+                raise StartupError('--params-file needs a file name')
+            files.append(argv[i + 1])
+            i += 1
+        i += 1
+    return files
+
+
+def check_params_files(argv: Sequence[str]) -> None:
+    """Refuse, with :class:`StartupError` naming the file and the problem, a ``--params-file``
+    that cannot be read, is not YAML, or is not a mapping of node names to ``ros__parameters``
+    (rcl would raise ``RCLError`` with a parser location, or, for a file that is not a mapping,
+    start without a word)."""
+    for name in params_files(argv):
+        path = Path(name)
+        try:
+            text = path.read_text(encoding='utf-8')
+        except FileNotFoundError:
+            raise StartupError(f'parameter file {name}: it does not exist') from None
+        except IsADirectoryError:
+            raise StartupError(f'parameter file {name}: it is a folder, not a file') from None
+        except PermissionError:
+            raise StartupError(f'parameter file {name}: permission denied') from None
+        except UnicodeDecodeError as err:
+            raise StartupError(f'parameter file {name}: not a text file ({err.reason})') from err
+        except OSError as err:
+            raise StartupError(f'parameter file {name}: {err.strerror or err}') from err
+        try:
+            content = yaml.safe_load(text)
+        except yaml.YAMLError as err:
+            where = getattr(err, 'problem_mark', None)
+            at = f' at line {where.line + 1}, column {where.column + 1}' if where else ''
+            problem = getattr(err, 'problem', None) or str(err).splitlines()[0]
+            raise StartupError(f'parameter file {name}: not valid YAML{at}: {problem}') from err
+        if content is None:
+            continue  # an empty file sets nothing, for rcl as for us
+        if not isinstance(content, dict):
+            raise StartupError(
+                f'parameter file {name}: expected a mapping of node names to ros__parameters '
+                f'(as in config/*.yaml), found {type(content).__name__} {_short(content)}'
+            )
+        _check_node_mapping(name, content, '')
+
+
+def _check_node_mapping(name: str, mapping: dict, where: str) -> None:
+    """rcl's layout: ``<node>: ros__parameters: {...}``, node names possibly nested under
+    namespaces; any other value above ``ros__parameters`` is an error."""
+    for key, value in mapping.items():
+        here = f'{where}/{key}' if where else str(key)
+        if key == 'ros__parameters':
+            if not where:
+                raise StartupError(
+                    f'parameter file {name}: ros__parameters must be under a node name '
+                    '(<node>: ros__parameters: ..., or /**: for every node)'
+                )
+            if value is not None and not isinstance(value, dict):
+                raise StartupError(
+                    f'parameter file {name}: {here} must be a mapping of parameter names to '
+                    f'values, found {_short(value)}'
+                )
+        elif isinstance(value, dict):
+            _check_node_mapping(name, value, here)
+        else:
+            raise StartupError(
+                f'parameter file {name}: {here} is a value outside any ros__parameters '
+                f'(expected <node>: ros__parameters: {{{key}: ...}})'
+            )
+
+
+def _short(value, width: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= width else text[: width - 3] + '...'
+
+
+def _init_quietly(argv: list[str]) -> None:
+    """``rclpy.init``; when it fails, rcl's own log line about it (``[ERROR] [rcl]: Failed to
+    parse global arguments``) is held back, so the caller's ``ERROR:`` line is the only one."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            rclpy.init(args=argv)
+        except BaseException:
+            failed = True
+            raise
+        else:
+            failed = False
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            text = held.read().decode(errors='replace')
+            if failed:
+                text = ''.join(
+                    line
+                    for line in text.splitlines(keepends=True)
+                    if 'Failed to parse global arguments' not in line
+                )
+            sys.stderr.write(text)
+            sys.stderr.flush()
+
+
+def _rcl_reason(err: Exception) -> str:
+    """rcl's message without its source locations (``, at /project/src/parse.c:782``)."""
+    text = str(err).replace('failed to initialize rcl: ', '')
+    return re.sub(r',? at [^,]*\.c:\d+', '', text).strip()
 
 
 class ParameterError(ConfigError):

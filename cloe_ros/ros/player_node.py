@@ -4,7 +4,11 @@ A recording replayed through the inference node (or anything else) sees the same
 byte, spaced as they were recorded: message *i* goes out at wall time
 ``t_start + (log_time_i - bag_start) / rate``. Messages are published in log-time order, so every
 topic keeps its recorded order. Optionally ``/clock`` carries the bag's log time, like
-``ros2 bag play --clock``. See docs/player.md for the parameters and the measured timing jitter.
+``ros2 bag play --clock``. As ``ros2 bag play`` it can start ``start_offset`` seconds into the
+bag, ``loop`` (every pass from the same start), and pause and resume by service (``~/pause``,
+``~/resume``, ``~/toggle_paused``, ``~/is_paused``, std_srvs/Trigger: rosbag2's names, with
+std_srvs types instead of rosbag2_interfaces). See docs/player.md for the parameters, what
+``/clock`` does on a loop or a pause, and the measured timing jitter.
 
 Threads: the executor (parameters, services) spins in the main thread; one thread reads the bag
 ahead into a bounded buffer and one publishes on schedule (rclpy publishers are thread-safe). The
@@ -15,6 +19,7 @@ from __future__ import annotations
 
 import gc
 import importlib
+import math
 import sys
 import threading
 import time
@@ -29,6 +34,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosbags.interfaces import QosDurability, QosReliability
 from rosgraph_msgs.msg import Clock
+from std_srvs.srv import Trigger
 
 from cloe_ros.io.messages import encode_clock
 from cloe_ros.io.reader import BagError, BagReader, qos_profiles
@@ -53,6 +59,10 @@ COARSE_WAIT_S = 0.002
 #: longer than Fast DDS's default heartbeat period (3 s).
 ACK_TIMEOUT_S = 3.5
 _END = object()
+#: Between two passes of a looping player: the next pass starts again from ``start_offset``.
+_PASS_END = object()
+#: Longest single wait while paused (a resume, a rate change or a stop wakes it earlier).
+PAUSED_WAIT_S = 0.5
 
 
 def message_class(msgtype: str):
@@ -134,16 +144,20 @@ class ReadAhead:
 
 class PlayerNode(Node):
     """Publishes a bag. ``finished`` is set when playback has ended (or stopped), ``failed`` when
-    it stopped because of a damaged bag, ``published`` counts the messages sent so far."""
+    it stopped because of a damaged bag, ``published`` counts the messages sent so far (over
+    every pass), ``passes`` the passes begun (more than one with ``loop``)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__('bag_player', **kwargs)
         self.failed = False
         self.finished = threading.Event()
         self.published = 0
+        self.passes = 0
         self._cond = threading.Condition()
         self._stopping = False
         self._playing = False
+        self._paused = False
+        self._paused_at = 0  # bag log time (ns) where a pause holds playback
         self._rate = 1.0
         self._anchor = (0.0, 0)  # (wall time perf_counter s, bag log time ns) while playing
         self._exit_when_done = True
@@ -154,6 +168,15 @@ class PlayerNode(Node):
         self._declare_parameters()
         self._open_bag()
         self._create_publishers()
+        for name, handler in (
+            ('pause', self._pause_service),
+            ('resume', self._resume_service),
+            ('toggle_paused', self._toggle_service),
+            ('is_paused', self._is_paused_service),
+        ):
+            self.create_service(Trigger, f'~/{name}', handler)
+        if self._start_paused:
+            self._pause()
         self._buffer = ReadAhead(READ_AHEAD_MESSAGES, READ_AHEAD_BYTES)
         for target, name in ((self._read, 'bag_reader'), (self._play, 'bag_publisher')):
             thread = threading.Thread(target=target, name=name, daemon=True)
@@ -227,6 +250,36 @@ class PlayerNode(Node):
                 float_range=(0.0, 3600.0),
             ),
         )
+        self.loop = common.declare(
+            self,
+            'loop',
+            False,
+            d(
+                'play the bag again and again (every pass from start_offset) until stopped; '
+                '/clock jumps back at each new pass',
+                read_only=ro,
+            ),
+        )
+        self.start_offset = common.declare(
+            self,
+            'start_offset',
+            0.0,
+            d(
+                'start playing this many s into the bag (log time after its first message); '
+                'earlier messages are skipped',
+                read_only=ro,
+                float_range=(0.0, 1e9),
+            ),
+        )
+        self._start_paused = common.declare(
+            self,
+            'start_paused',
+            False,
+            d(
+                'start paused: nothing is published until ~/resume (or ~/toggle_paused)',
+                read_only=ro,
+            ),
+        )
         common.declare(
             self,
             'exit_when_done',
@@ -288,6 +341,14 @@ class PlayerNode(Node):
                     f'{", ".join(bag.topics) or "no topics"})'
                 )
                 raise common.ParameterError(reason, 'topics')
+        if bag.message_count and self.start_offset > bag.duration_s:
+            bag.close()
+            reason = (
+                f'{self.start_offset:g} s is past the end of {bag.path} (it spans '
+                f'{bag.duration_s:.3f} s)'
+            )
+            raise common.ParameterError(reason, 'start_offset')
+        self._first_ns = bag.start_ns + round(self.start_offset * NS)
 
     def _create_publishers(self) -> None:
         bag = self._bag
@@ -324,10 +385,22 @@ class PlayerNode(Node):
     # -- the reading thread --------------------------------------------------------------------
 
     def _read(self) -> None:
+        """Every pass of the bag into the buffer (messages before ``start_offset`` skipped), with
+        ``_PASS_END`` between passes when looping, then ``_END``."""
         assert self._bag is not None
+        first = self._first_ns
         try:
-            for item in self._bag.messages(self._played):
-                if not self._buffer.put(item, len(item[2])):
+            while True:
+                played = 0
+                for item in self._bag.messages(self._played):
+                    if item[1] < first:
+                        continue
+                    if not self._buffer.put(item, len(item[2])):
+                        return
+                    played += 1
+                if not (self.loop and played):  # (a pass without messages would spin)
+                    break
+                if not self._buffer.put(_PASS_END, 0):
                     return
             self._buffer.put(_END, 0)
         except BagError as err:
@@ -336,12 +409,76 @@ class PlayerNode(Node):
     # -- the publishing thread -----------------------------------------------------------------
 
     def _bag_time(self, wall: float) -> int:
+        """The bag log time reached at ``wall`` (held where it is while paused)."""
+        if self._paused:
+            return self._paused_at
         wall0, bag0 = self._anchor
         return bag0 + round((wall - wall0) * self._rate * NS)
 
     def _wall_time(self, log_ns: int) -> float:
+        """When ``log_ns`` is due (never, while paused)."""
+        if self._paused:
+            return math.inf
         wall0, bag0 = self._anchor
         return wall0 + (log_ns - bag0) / (self._rate * NS)
+
+    # -- pause and resume ----------------------------------------------------------------------
+
+    def _pause(self) -> bool:
+        """Hold playback at the bag time reached now; False if it was paused already."""
+        with self._cond:
+            if self._paused:
+                return False
+            self._paused_at = self._bag_time(time.perf_counter()) if self._playing else 0
+            self._paused = True
+            self._cond.notify_all()
+            return True
+
+    def _resume(self) -> bool:
+        """Go on from the bag time where the pause held; False if it was not paused."""
+        with self._cond:
+            if not self._paused:
+                return False
+            self._paused = False
+            if self._playing:
+                self._anchor = (time.perf_counter(), self._paused_at)
+            self._cond.notify_all()
+            return True
+
+    def _where(self) -> str:
+        with self._cond:
+            if not self._playing:
+                return 'before the first message'
+            reached = self._bag_time(time.perf_counter())
+        assert self._bag is not None
+        return f'at {(reached - self._bag.start_ns) / NS:.3f} s into the bag'
+
+    def _pause_service(self, request, response):
+        changed = self._pause()
+        response.success = True
+        response.message = ('paused ' if changed else 'already paused ') + self._where()
+        if changed:
+            self.get_logger().info(response.message)
+        return response
+
+    def _resume_service(self, request, response):
+        where = self._where()
+        changed = self._resume()
+        response.success = True
+        response.message = f'resumed {where}' if changed else f'not paused (playing {where})'
+        if changed:
+            self.get_logger().info(response.message)
+        return response
+
+    def _toggle_service(self, request, response):
+        if self._paused:
+            return self._resume_service(request, response)
+        return self._pause_service(request, response)
+
+    def _is_paused_service(self, request, response):
+        response.success = True
+        response.message = 'paused' if self._paused else 'playing'
+        return response
 
     def _wait_until(self, target) -> bool:
         """Wait until ``target()`` (a wall time, re-evaluated after a rate change); False when
@@ -353,6 +490,9 @@ class PlayerNode(Node):
                 remaining = target() - time.perf_counter()
                 if remaining <= 0.0:
                     return True
+                if math.isinf(remaining):  # paused
+                    self._cond.wait(PAUSED_WAIT_S)
+                    continue
                 if remaining > COARSE_WAIT_S:
                     self._cond.wait(remaining - COARSE_WAIT_S / 2)
                     continue
@@ -435,41 +575,56 @@ class PlayerNode(Node):
         log = self.get_logger()
         clock = self._clock_pub
         period = 1.0 / self.clock_rate
+        first = self._first_ns
         lateness = array('d')
         item = self._buffer.get()  # the first chunk is decoded before the clock starts
+        offset = f' from {self.start_offset:g} s' if self.start_offset else ''
+        looping = ', looping' if self.loop else ''
         log.info(
             f'playing {bag.path}: {", ".join(self._played)}, {bag.duration_s:.3f} s at rate '
-            f'{self._rate:g}'
+            f'{self._rate:g}{offset}{looping}'
         )
-        with self._cond:
-            self._anchor = (time.perf_counter(), bag.start_ns)
-            self._playing = True
-        wall_start = self._anchor[0]
-        next_tick = wall_start
+        wall_start = time.perf_counter()
         count = 0
-        while item is not _END:
-            if isinstance(item, BaseException):
-                raise item
-            topic, log_ns, raw = item
-            if clock is not None and next_tick <= self._wall_time(log_ns):
-                tick = next_tick
-                if not self._wait_until(lambda t=tick: t):
+        while True:
+            with self._cond:
+                self._anchor = (time.perf_counter(), first)
+                if self._paused:
+                    self._paused_at = first
+                self._playing = True
+            self.passes += 1
+            next_tick = self._anchor[0]
+            while item is not _END and item is not _PASS_END:
+                if isinstance(item, BaseException):
+                    raise item
+                topic, log_ns, raw = item
+                if clock is not None:
+                    # the next tick or the message, whichever is due first (while paused, the
+                    # message never is: the ticks go on with the bag time held)
+                    due = lambda t=log_ns, k=next_tick: min(k, self._wall_time(t))  # noqa: E731
+                    if not self._wait_until(due):
+                        return
+                    if next_tick <= self._wall_time(log_ns):
+                        with self._cond:
+                            now_ns = min(max(self._bag_time(next_tick), first), bag.end_ns)
+                        clock.publish(encode_clock(now_ns))
+                        next_tick += period
+                        continue
+                elif not self._wait_until(lambda t=log_ns: self._wall_time(t)):
                     return
-                with self._cond:
-                    now_ns = min(max(self._bag_time(tick), bag.start_ns), bag.end_ns)
-                clock.publish(encode_clock(now_ns))
-                next_tick += period
-                continue
-            if not self._wait_until(lambda t=log_ns: self._wall_time(t)):
-                return
-            late = time.perf_counter() - self._wall_time(log_ns)
-            self._publishers_by_topic[topic].publish(raw)
-            lateness.append(late)
-            count += 1
-            self.published = count
+                late = time.perf_counter() - self._wall_time(log_ns)
+                self._publishers_by_topic[topic].publish(raw)
+                if math.isfinite(late):  # (not paused between the wait and now)
+                    lateness.append(late)
+                count += 1
+                self.published = count
+                item = self._buffer.get()
+            if clock is not None and bag.message_count:  # no messages, no bag time to publish
+                clock.publish(encode_clock(bag.end_ns))
+            if item is _END:
+                break
+            log.info(f'pass {self.passes} done ({count} messages so far); playing again{offset}')
             item = self._buffer.get()
-        if clock is not None and bag.message_count:  # no messages, no bag time to publish
-            clock.publish(encode_clock(bag.end_ns))
         elapsed = time.perf_counter() - wall_start
         self._wait_for_acks()
         log.info(f'done: {count} messages in {elapsed:.3f} s; {_lateness_summary(lateness)}')

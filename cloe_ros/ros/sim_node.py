@@ -13,13 +13,21 @@ its node clock; the origin of the stamps is the system time at start. ``use_sim_
 accepted with ``publish_clock:=true`` (the node's own clock then follows the ``/clock`` it
 publishes) and refused at start-up without it: the other nodes would wait for a ``/clock`` that
 nobody publishes.
+
+Real time: with ``real_time_factor`` > 0 the node measures the factor it achieves over the last
+``rtf_window`` s of wall time. When that falls below ``RTF_TOLERANCE`` of the factor asked for,
+it warns once (per episode: once it holds the factor again it says so, and a later fall warns
+again), and ``/diagnostics`` (every ``diagnostics_period``) reports WARN with the factor asked for,
+the factor achieved over the window and since the start, and how far simulated time lags behind.
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock as RosClock
@@ -45,7 +53,9 @@ from cloe_ros.core.simulator import (
     true_parameters,
 )
 from cloe_ros.io.messages import (
+    Status,
     encode_clock,
+    encode_diagnostics,
     encode_float64_multi_array,
     encode_odometry,
     encode_pose_stamped,
@@ -65,6 +75,66 @@ from cloe_ros.ros.common import (
 )
 
 GAIN_NAMES = tuple(ControllerGains.__dataclass_fields__)
+#: The simulator is behind when it achieves less than this fraction of the factor asked for.
+RTF_TOLERANCE = 0.9
+#: Longest a tick steps the simulation (wall s) before it lets the executor run other callbacks.
+MAX_TICK_S = 0.1
+#: diagnostic_msgs/DiagnosticStatus levels.
+OK, WARN = 0, 1
+
+
+class RealTimeMonitor:
+    """The real-time factor achieved over a sliding window of wall time, and episodes of falling
+    behind the factor asked for.
+
+    ``update(wall_s, sim_s)`` after every tick (wall clock and simulated time, s) returns
+    ``'behind'`` when an episode starts (the factor over the last ``window_s`` is below
+    ``tolerance * target``), ``'recovered'`` when it ends, else None. Nothing is judged before the
+    samples span the window, nor with ``target`` 0 (as fast as possible).
+    """
+
+    def __init__(self, target: float, window_s: float, tolerance: float = RTF_TOLERANCE) -> None:
+        self.target, self.window_s, self.tolerance = target, window_s, tolerance
+        self.behind = False
+        self.episodes = 0
+        self._samples: deque[tuple[float, float]] = deque()
+        self._first: tuple[float, float] | None = None
+
+    def update(self, wall_s: float, sim_s: float) -> str | None:
+        if self._first is None:
+            self._first = (wall_s, sim_s)
+        self._samples.append((wall_s, sim_s))
+        while len(self._samples) > 2 and wall_s - self._samples[1][0] >= self.window_s:
+            self._samples.popleft()
+        achieved = self.achieved
+        if achieved is None or self.target <= 0:
+            return None
+        if not self.behind and achieved < self.tolerance * self.target:
+            self.behind = True
+            self.episodes += 1
+            return 'behind'
+        if self.behind and achieved >= self.tolerance * self.target:
+            self.behind = False
+            return 'recovered'
+        return None
+
+    @property
+    def achieved(self) -> float | None:
+        """Simulated s per wall s over the last window (None until the samples span it)."""
+        if len(self._samples) < 2:
+            return None
+        (w0, s0), (w1, s1) = self._samples[0], self._samples[-1]
+        if w1 - w0 < self.window_s:
+            return None
+        return (s1 - s0) / (w1 - w0)
+
+    @property
+    def overall(self) -> float | None:
+        """Simulated s per wall s since the first sample."""
+        if self._first is None or not self._samples:
+            return None
+        (w0, s0), (w1, s1) = self._first, self._samples[-1]
+        return (s1 - s0) / (w1 - w0) if w1 > w0 else None
 
 
 class SimulatorNode(Node):
@@ -111,6 +181,7 @@ class SimulatorNode(Node):
         self.shutdown_when_done = get('shutdown_when_done')
         self.wait_for_subscribers = get('wait_for_subscribers')
         self.wait_timeout = get('wait_timeout')
+        self.monitor = RealTimeMonitor(self.rtf, get('rtf_window'))
         if self.get_parameter('use_sim_time').value and not self.publish_clock:
             raise ParameterError(
                 'use_sim_time is true but publish_clock is false: the simulator is the clock '
@@ -139,10 +210,19 @@ class SimulatorNode(Node):
         self.clock_pub = (
             self.create_publisher(Clock, '/clock', qos(depth=10)) if self.publish_clock else None
         )
+        self.diagnostics_pub = self.create_publisher(
+            DiagnosticArray, '/diagnostics', qos(depth=10)
+        )
+        self._diag_timer = self.create_timer(
+            get('diagnostics_period'),
+            self._publish_diagnostics,
+            clock=RosClock(clock_type=ClockType.STEADY_TIME),
+        )
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.theta_true = true_parameters(quad, gains)
         self.origin_ns: int | None = None
         self.wall_start: float | None = None
+        self._started: float | None = None  # wall (monotonic) time of the first sample
         self._wait_start = time.monotonic()
         self._step = 0
         self.done = False
@@ -211,6 +291,12 @@ class SimulatorNode(Node):
             ('wait_timeout', 30.0, describe('then start anyway after this many s',
                                             float_range=(0.0, 3600.0), **ro)),
             ('shutdown_when_done', False, describe('exit when the duration is over', **ro)),
+            ('rtf_window', 5.0, describe(
+                'window of wall time over which the achieved real-time factor is measured, s '
+                f'(below {RTF_TOLERANCE:g} of real_time_factor: a warning and WARN in '
+                '/diagnostics)', float_range=(0.1, 600.0), **ro)),
+            ('diagnostics_period', 1.0, describe(
+                '/diagnostics period, s (wall time)', float_range=(0.05, 60.0), **ro)),
             ('qos_depth', 1000, describe(
                 'QoS history depth of the publishers (10 s of 100 Hz: a subscriber starved of CPU '
                 'for a moment loses nothing)', int_range=(1, 100000), **ro)),
@@ -238,6 +324,7 @@ class SimulatorNode(Node):
                     elapsed = time.monotonic() - self.wall_start
                     self.wall_start = time.monotonic() - elapsed * self.rtf / max(p.value, 1e-9)
                 self.rtf = p.value
+                self.monitor = RealTimeMonitor(p.value, self.monitor.window_s)
         return accept()
 
     @staticmethod
@@ -273,7 +360,7 @@ class SimulatorNode(Node):
             if not self._ready():
                 return
             self.origin_ns = time.time_ns()  # system time, whatever the node clock
-            self.wall_start = time.monotonic()
+            self.wall_start = self._started = time.monotonic()
             if self.publish_truth:
                 for v in self.vehicles:
                     labels = [f'theta.{n}' for n in PARAMETER_NAMES]
@@ -287,16 +374,81 @@ class SimulatorNode(Node):
         else:
             target = self.sim.t + 0.05
         target = min(target, self.duration)
+        tick_end = time.monotonic() + MAX_TICK_S
         while self.sim.t + 0.5 * self.sim.dt < target:
             self.sim.step()
             self._step += 1
             self._publish_samples()
+            if time.monotonic() > tick_end:
+                break  # behind: let the executor serve diagnostics and parameters meanwhile
+        self._watch_real_time()
         if self.sim.t + 0.5 * self.sim.dt >= self.duration:
             self.done = True
-            self.get_logger().info(f'done: {self.duration:g} s simulated')
+            wall = time.monotonic() - self._started
+            achieved = f'{self.sim.t / wall:.3g}' if wall > 0 else 'inf'
+            asked = f'{self.rtf:g}' if self.rtf > 0 else 'as fast as possible'
+            self.get_logger().info(
+                f'done: {self.duration:g} s simulated in {wall:.2f} s of wall time '
+                f'(real-time factor {achieved}, asked {asked})'
+            )
             if self.shutdown_when_done:
                 self._wait_for_acks()
                 self.context.try_shutdown()
+
+    def _lag_s(self) -> float:
+        """How far simulated time is behind the wall clock scaled by the factor asked for, s."""
+        if self.rtf <= 0 or self.wall_start is None or self.done:
+            return 0.0
+        wanted = min((time.monotonic() - self.wall_start) * self.rtf, self.duration)
+        return max(0.0, wanted - self.sim.t)
+
+    def _watch_real_time(self) -> None:
+        event = self.monitor.update(time.monotonic(), self.sim.t)
+        if event == 'behind':
+            self.get_logger().warning(
+                f'cannot hold real_time_factor {self.rtf:g}: achieved {self.monitor.achieved:.3g} '
+                f'over the last {self.monitor.window_s:g} s of wall time; simulated time lags '
+                f'{self._lag_s():.1f} s behind (a busy machine? lower real_time_factor, sim_rate '
+                'or the number of vehicles)'
+            )
+        elif event == 'recovered':
+            self.get_logger().info(
+                f'real_time_factor {self.rtf:g} held again (achieved {self.monitor.achieved:.3g} '
+                f'over the last {self.monitor.window_s:g} s)'
+            )
+
+    def _publish_diagnostics(self) -> None:
+        m = self.monitor
+
+        def number(value: float | None) -> str:
+            return '' if value is None else f'{value:.4g}'
+
+        if self.origin_ns is None:
+            level, message = OK, 'waiting for subscribers'
+        elif self.done:
+            level, message = OK, f'done: {self.duration:g} s simulated'
+        elif m.behind:
+            level = WARN
+            message = f'falling behind: real-time factor {number(m.achieved)} of {self.rtf:g}'
+        elif self.rtf > 0:
+            level, message = OK, f'real-time factor {self.rtf:g}'
+        else:
+            level, message = OK, 'as fast as possible'
+        values = (
+            ('scenario', self.sim.scenario.name),
+            ('vehicles', str(len(self.vehicles))),
+            ('sim_time_s', f'{self.sim.t:.3f}'),
+            ('duration_s', f'{self.duration:g}'),
+            ('real_time_factor', f'{self.rtf:g}'),
+            ('real_time_factor_achieved', number(m.achieved)),
+            ('real_time_factor_overall', number(m.overall)),
+            ('rtf_window_s', f'{m.window_s:g}'),
+            ('lag_s', f'{self._lag_s():.3f}'),
+            ('behind_episodes', str(m.episodes)),
+        )
+        stamp = self.origin_ns + round(self.sim.t * NS) if self.origin_ns else time.time_ns()
+        status = Status(level, self.get_name(), message, 'quadrotor_sim', values)
+        self.diagnostics_pub.publish(encode_diagnostics(stamp, [status]))
 
     def _wait_for_acks(self, timeout: float = 3.5) -> None:
         """Before exiting, let reliable subscribers acknowledge the last samples (Fast DDS asks

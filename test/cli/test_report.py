@@ -459,3 +459,55 @@ def test_the_parameters_figure_shows_the_model_in_use_only_where_it_differs(
     assert [iv.labels[c] for c in columns] == [f'model.theta.{n}' for n in PARAMETER_NAMES]
     assert not np.array_equal(iv.parameters.values[:, columns], iv.parameters.values[:, :16])
     assert model_columns(load_flight(output_bag)[''].outputs['cloe']) is None
+
+
+# -- progress and failure ------------------------------------------------------------------------
+
+
+def malformed_odometry_bag(source: Path, target: Path) -> Path:
+    """``source`` with every odometry message cut to 20 bytes (undecodable)."""
+    with BagReader(source) as reader, BagWriter(target) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        for topic, t, raw in reader.messages():
+            writer.write(topic, t, bytes(raw[:20]) if topic == '/odom' else bytes(raw))
+    return target
+
+
+def test_every_phase_shows_progress(input_bag, tmp_path, capsys):
+    """Without -q: the inference, reading the bag, scoring and the figures of each vehicle and
+    writing the report each show their progress on stderr (a line per 10 % off a terminal)."""
+    status, _, err = run_report(capsys, input_bag, '-o', tmp_path / 'r')
+    assert status == 0, err
+    stages = [line.split(':')[0] for line in err.splitlines() if line.endswith(' s)')]
+    for stage in ('infer', 'read the bag', 'score /', 'figures /', 'write the report'):
+        assert stage in stages, err
+        assert f'{stage}: 100%' in err, err
+    figures = [line for line in err.splitlines() if line.startswith('figures /:')]
+    assert len(figures) >= 4  # one line per figure drawn (a decile each)
+
+
+def test_a_failed_inference_leaves_nothing_behind(input_bag, tmp_path, capsys):
+    """Every odometry message malformed: one ERROR line naming the bag and the topic, exit 1,
+    and neither the report folder nor its inferred_bag/ is left."""
+    bag = malformed_odometry_bag(input_bag, tmp_path / 'malformed')
+    folder = tmp_path / 'new' / 'report'
+    status, _out, err = run_report(capsys, bag, '-o', folder, '-q')
+    assert status == 1
+    errors = [line for line in err.splitlines() if 'ERROR' in line]
+    assert len(errors) == 1 and errors[0].startswith(f'ERROR: {bag}'), err
+    assert '/odom' in errors[0], err
+    assert 'Traceback' not in err
+    assert not folder.exists() and not (tmp_path / 'new').exists()
+
+
+def test_a_failed_report_with_force_keeps_only_what_was_there(input_bag, tmp_path, capsys):
+    """Into an existing folder (--force): the user's files stay, the report's own go."""
+    folder = tmp_path / 'r'
+    folder.mkdir()
+    (folder / 'notes.txt').write_text('mine')
+    (folder / 'index.html').write_text('an earlier report')
+    bag = malformed_odometry_bag(input_bag, tmp_path / 'malformed')
+    status, _, err = run_report(capsys, bag, '-o', folder, '-q', '--force')
+    assert status == 1 and err.startswith(f'ERROR: {bag}'), err
+    assert sorted(p.name for p in folder.iterdir()) == ['notes.txt']

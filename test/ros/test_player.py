@@ -7,6 +7,7 @@ status 1 and a message saying what is wrong.
 
 from __future__ import annotations
 
+import itertools
 import signal
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from rosbags.interfaces import (
 )
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosgraph_msgs.msg import Clock
+from std_srvs.srv import Trigger
 
 from cloe_ros.core.samples import OdometrySample
 from cloe_ros.io.messages import (
@@ -299,13 +301,15 @@ def test_damaged_chunk_mid_play(ros, tmp_path):
     data[first + 15 : first + 23] = data[second + 15 : second + 23]  # log time
     mcap.write_bytes(bytes(data))
     arrivals = Arrivals(ros.node, {'/odom': Odometry})
+    # the publisher keeps every message until acknowledged: at 100x, a subscriber short of CPU
+    # falls more than the default 1000 messages behind
     player = NodeProcess(
         'bag_player',
-        {'bag': str(bag), 'rate': 100.0, 'wait_for_subscribers': 1},
+        {'bag': str(bag), 'rate': 100.0, 'wait_for_subscribers': 1, 'qos_depth': 10_000},
         ros.domain,
         tmp_path,
     )
-    status = play_to_end(ros, player, timeout=15)
+    status = play_to_end(ros, player, timeout=30)
     err = player.stderr_path.read_text()
     assert status == 1, output(player)
     assert f'{mcap}: corrupt chunk at byte offset {chunks[1].chunk_start_offset}' in err
@@ -373,6 +377,7 @@ def truncated_bag(tmp_path: Path) -> Path:
         ({'bag': str(B2), 'rate': 101.0}, "ERROR: parameter 'rate'"),
         ({'bag': str(B2), 'topics': ['/odm']}, "ERROR: parameter 'topics': /odm not in"),
         ({'bag': 'UNKNOWN_TYPES'}, 'nothing to play (no topic can be published)'),
+        ({'bag': 'SMALL', 'start_offset': 5.0}, "ERROR: parameter 'start_offset': 5 s is past"),
     ],
     ids=[
         'no-bag',
@@ -384,12 +389,16 @@ def truncated_bag(tmp_path: Path) -> Path:
         'rate-101',
         'topic',
         'no-known-type',
+        'offset-past-end',
     ],
 )
 def test_refuses_to_start(tmp_path, params, expected):
     params = dict(params)
     if params.get('bag') == 'TRUNCATED':
         params['bag'] = str(truncated_bag(tmp_path))
+    elif params.get('bag') == 'SMALL':
+        params['bag'] = str(tmp_path / 'small')
+        write_small_bag(tmp_path / 'small', {'/odom': ODOMETRY}, n=50)  # 0.49 s
     elif params.get('bag') == 'UNKNOWN_TYPES':
         params['bag'] = str(tmp_path / 'temperature')
         write_small_bag(tmp_path / 'temperature', {'/temperature': TEMPERATURE}, n=5)
@@ -507,4 +516,131 @@ def test_no_clock_for_a_bag_without_messages(ros, tmp_path, monkeypatch):
         assert not player.failed and player.published == 0
         assert sent == []
     finally:
+        player.destroy_node()
+
+
+# -- ros2 bag play's conveniences: start offset, loop, pause / resume ----------------------------
+
+BAG_START_NS = 10**18  # write_small_bag's first log time
+
+
+def positions(arrivals: Arrivals) -> list[float]:
+    return [decode_odometry(raw).position[0] for _, raw in arrivals.msgs['/odom']]
+
+
+def test_start_offset(ros, tmp_path):
+    """Messages before start_offset are skipped; /clock starts at the offset."""
+    bag = tmp_path / 'bag'
+    write_small_bag(bag, {'/odom': ODOMETRY}, n=50)  # message i at i * 10 ms
+    arrivals = Arrivals(ros.node, {'/odom': Odometry, '/clock': Clock})
+    params = {'bag': str(bag), 'start_offset': 0.2, 'publish_clock': True, 'rate': 2.0,
+              'wait_for_subscribers': 1}  # fmt: skip
+    player = NodeProcess('bag_player', params, ros.domain, tmp_path)
+    matched = spin_until(
+        ros.executor, lambda: arrivals.subs['/clock'].get_publisher_count() >= 1, timeout=10
+    )
+    status = play_to_end(ros, player, timeout=20)
+    out = output(player)
+    assert matched and status == 0, out
+    assert 'from 0.2 s' in out and 'done: 30 messages' in out
+    assert positions(arrivals) == list(map(float, range(20, 50)))
+    clock = [decode_clock(raw) for _, raw in arrivals.msgs['/clock']]
+    assert clock[0] == BAG_START_NS + 20 * 10**7
+    assert clock[-1] == BAG_START_NS + 49 * 10**7
+    assert all(b >= a for a, b in itertools.pairwise(clock))
+
+
+def test_loop_plays_every_pass_from_the_offset(ros, tmp_path):
+    """With loop, the bag plays again and again from start_offset until stopped; /clock jumps
+    back to the offset at the start of every pass."""
+    bag = tmp_path / 'bag'
+    write_small_bag(bag, {'/odom': ODOMETRY}, n=50)
+    arrivals = Arrivals(ros.node, {'/odom': Odometry, '/clock': Clock})
+    params = {'bag': str(bag), 'loop': True, 'start_offset': 0.3, 'publish_clock': True,
+              'rate': 5.0, 'wait_for_subscribers': 1}  # fmt: skip
+    player = NodeProcess('bag_player', params, ros.domain, tmp_path)
+    try:
+        matched = spin_until(
+            ros.executor, lambda: arrivals.subs['/clock'].get_publisher_count() >= 1, timeout=10
+        )
+        passes = spin_until(ros.executor, lambda: arrivals.count('/odom') >= 60, timeout=30)
+    finally:
+        status = player.stop(signal.SIGINT)
+    out = output(player)
+    assert matched and passes, out
+    assert status == 0 and 'Traceback' not in out, out
+    assert 'looping' in out and 'pass 2 done' in out
+    assert 'done:' not in out  # a looping player ends only when stopped
+    got = positions(arrivals)
+    one_pass = list(map(float, range(30, 50)))
+    assert got == (one_pass * (len(got) // 20 + 1))[: len(got)]
+    clock = [decode_clock(raw) for _, raw in arrivals.msgs['/clock']]
+    start, end = BAG_START_NS + 30 * 10**7, BAG_START_NS + 49 * 10**7
+    backwards = [(a, b) for a, b in itertools.pairwise(clock) if b < a]
+    assert len(backwards) >= 2  # two passes completed at least
+    assert all(a == end and b == start for a, b in backwards)
+    assert min(clock) == start and max(clock) == end
+
+
+def call(ros, service: str) -> Trigger.Response:
+    client = ros.node.create_client(Trigger, service)
+    try:
+        assert client.wait_for_service(timeout_sec=10.0), service
+        future = client.call_async(Trigger.Request())
+        assert spin_until(ros.executor, future.done, timeout=10.0), service
+        return future.result()
+    finally:
+        ros.node.destroy_client(client)
+
+
+def test_pause_and_resume_by_service(ros, tmp_path):
+    """start_paused holds everything back; ~/resume plays, ~/pause holds playback and /clock at
+    the bag time reached, ~/toggle_paused and ~/is_paused as rosbag2's services; nothing is lost
+    or reordered across pauses."""
+    bag = tmp_path / 'bag'
+    write_small_bag(bag, {'/odom': ODOMETRY}, n=300)  # 3 s
+    arrivals = Arrivals(ros.node, {'/odom': Odometry, '/clock': Clock})
+    player = PlayerNode(
+        context=ros.ctx,
+        parameter_overrides=[
+            Parameter('bag', value=str(bag)),
+            Parameter('start_paused', value=True),
+            Parameter('publish_clock', value=True),
+            Parameter('wait_for_subscribers', value=1),
+            Parameter('exit_when_done', value=False),
+        ],
+    )
+    ros.executor.add_node(player)
+    try:
+        assert call(ros, '/bag_player/is_paused').message == 'paused'
+        drain(ros, 0.5)
+        assert player.published == 0 and arrivals.count('/odom') == 0
+        assert call(ros, '/bag_player/resume').message.startswith('resumed')
+        assert spin_until(ros.executor, lambda: player.published >= 20, timeout=10)
+        paused = call(ros, '/bag_player/pause')
+        assert paused.success and paused.message.startswith('paused at ')
+        held = player.published
+        assert held < 300
+        assert call(ros, '/bag_player/is_paused').message == 'paused'
+        assert call(ros, '/bag_player/pause').message.startswith('already paused')
+        ticks_before = arrivals.count('/clock')
+        drain(ros, 0.5)
+        assert player.published <= held + 1  # at most the one on its way as the pause came
+        # /clock goes on ticking, holding the bag time where the pause came
+        later = [decode_clock(raw) for _, raw in arrivals.msgs['/clock'][ticks_before:]]
+        assert later and later[-1] == player._paused_at
+        assert all(t <= player._paused_at for t in later)
+        assert call(ros, '/bag_player/toggle_paused').message.startswith('resumed')
+        assert call(ros, '/bag_player/is_paused').message == 'playing'
+        (result,) = player.set_parameters([Parameter('rate', value=20.0)])
+        assert result.successful
+        assert spin_until(ros.executor, player.finished.is_set, timeout=15)
+        assert spin_until(ros.executor, lambda: arrivals.count('/odom') == 300, timeout=10)
+        assert positions(arrivals) == list(map(float, range(300)))
+        assert not player.failed and player.published == 300
+        clock = [decode_clock(raw) for _, raw in arrivals.msgs['/clock']]
+        assert all(b >= a for a, b in itertools.pairwise(clock))
+        assert call(ros, '/bag_player/resume').message.startswith('not paused')
+    finally:
+        ros.executor.remove_node(player)
         player.destroy_node()

@@ -9,7 +9,8 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 ROS_WHEELS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-nav-msgs ros-jazzy-geometry-msgs \
-	ros-jazzy-std-msgs ros-jazzy-std-srvs ros-jazzy-diagnostic-msgs ros-jazzy-rosgraph-msgs
+	ros-jazzy-std-msgs ros-jazzy-std-srvs ros-jazzy-diagnostic-msgs ros-jazzy-rosgraph-msgs \
+	ros-jazzy-visualization-msgs
 SOURCES := setup.py setup.cfg package.xml $(shell find cloe_ros config resource launch viewers -type f \
 	-not -name '*.pyc' 2>/dev/null) $(shell find bags -type f 2>/dev/null)
 DEMO_ARGS ?=

@@ -7,6 +7,8 @@
 * ``cloe bag recover BAG [-o OUT]`` — a complete bag from an ``.mcap`` without summary/footer
   (recorder killed, power lost) or with damaged records: every message fully on disk and intact,
   written to ``<BAG>_recovered``.
+* ``cloe bag nanobench CSV -o OUT`` — a bag of the interface contract from a flight of the
+  public NanoBench dataset (:mod:`cloe_ros.io.nanobench`).
 """
 
 from __future__ import annotations
@@ -69,6 +71,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     rec.set_defaults(run=run_recover)
 
+    nano = bag_sub.add_parser(
+        'nanobench',
+        help='a bag of the interface contract from a NanoBench flight CSV',
+        description=(
+            'Convert one flight of the NanoBench dataset (Crazyflie 2.1 under Vicon; '
+            'github syediu/nanobench-iros2026, BSD-3-Clause) from its CSV into a rosbag2/MCAP '
+            'bag: <ns>/odom (nav_msgs/Odometry: Vicon pose in world, twist in the body frame) '
+            'at every row, and <ns>/reference (geometry_msgs/PoseStamped: the controller\'s '
+            'setpoint, sp_ctrltarget_*) from the first non-zero setpoint on. The corpus of real '
+            'flights the package is evaluated on was made this way.'
+        ),
+    )
+    nano.add_argument('csv', type=Path, metavar='CSV', help='the flight CSV of NanoBench')
+    nano.add_argument('-o', '--output', type=Path, required=True, metavar='OUT',
+                      help='bag directory to create (never overwritten)')  # fmt: skip
+    nano.add_argument('--namespace', default='', metavar='NS',
+                      help='vehicle namespace of the topics (default: none)')  # fmt: skip
+    nano.set_defaults(run=run_nanobench)
+
 
 def run_info(args: argparse.Namespace) -> int:
     bag: Path = args.bag
@@ -87,4 +108,14 @@ def run_recover(args: argparse.Namespace) -> int:
     report = recover_bag(args.bag, args.output, compression=args.compression)
     for line in report.lines():
         print(line)
+    return 0
+
+
+def run_nanobench(args: argparse.Namespace) -> int:
+    from cloe_ros.io.nanobench import convert_nanobench
+
+    done = convert_nanobench(args.csv, args.output, args.namespace)
+    print(f'wrote {args.output}: {done.odometry} odometry and {done.references} reference '
+          f'messages' + (f'; {done.skipped} row(s) with non-finite values left out'
+                         if done.skipped else ''))  # fmt: skip
     return 0

@@ -4,6 +4,9 @@
 prediction RMSE at 0.5 / 1 / 2 / 5 s beside the true-model, constant-velocity and hold-position
 predictors. ``cloe evaluate bag BAG``: the same prediction scores on a recording against what the
 vehicle did next (no parameter truth), optionally with the recorded future references as the plan.
+``cloe evaluate corpus DIR...``: every flight of many bags, replayed as ``cloe infer`` runs them,
+scored per flight and as the median over flights beside four baselines, with the coverage of the
+95 % radius.
 """
 
 from __future__ import annotations
@@ -110,6 +113,30 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         'start (default: the end), e.g. to leave out a landing',
     )
     _common(b)
+    c = ev.add_parser(
+        'corpus',
+        help='many recorded flights: predictions against what happened next, per flight and '
+        'as the median over flights, beside the baselines',
+    )
+    c.add_argument(
+        'paths', type=Path, nargs='+', metavar='PATH',
+        help='bag directories or .mcap files, or folders holding them (searched recursively)',
+    )  # fmt: skip
+    c.add_argument(
+        '--jobs', '-j', type=int, default=0,
+        help='flights evaluated at once, in separate processes (default 0: one per core)',
+    )  # fmt: skip
+    c.add_argument(
+        '--score-from', type=float, default=5.0,
+        help='score predictions issued this many s after the first odometry (default: 5)',
+    )  # fmt: skip
+    c.add_argument(
+        '--config', type=Path,
+        help="YAML with the node's parameters (as for `cloe infer`), the same for every flight",
+    )  # fmt: skip
+    c.add_argument('--json', type=Path, help='also write the numbers to this JSON file (new)')
+    c.add_argument('--force', action='store_true', help='replace the --json file if it exists')
+    c.add_argument('-q', '--quiet', action='store_true', help='no progress line')
     p.set_defaults(run=run)  # fmt: skip
 
 
@@ -475,4 +502,8 @@ def run_bag(args) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.target == 'corpus':
+        from cloe_ros.cli.corpus import run_corpus
+
+        return run_corpus(args)
     return run_sim(args) if args.target == 'sim' else run_bag(args)

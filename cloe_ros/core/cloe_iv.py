@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from cloe_ros.core.estimator import EstimatorConfig, StepBuffers, observer_drift
-from cloe_ros.core.identifier import IvIdentifier
+from cloe_ros.core.identifier import ROW_CHANNEL, IvIdentifier
 from cloe_ros.core.model import (
     COUPLED_BLOCKS,
     N_STATES,
@@ -118,9 +118,12 @@ class CloeIvEstimator:
     def error(self) -> np.ndarray:
         return self.buffers.e
 
-    def step(self, zeta: np.ndarray, r: np.ndarray, h: float) -> None:
+    def step(
+        self, zeta: np.ndarray, r: np.ndarray, h: float, tracked: np.ndarray | None = None
+    ) -> None:
         """Advance ``h`` s (the constructor's step) to the measurement ``zeta`` (N, 12) with the
-        reference ``r`` (N, 4) of the same time."""
+        reference ``r`` (N, 4) of the same time. Where ``tracked`` (N, 4) is False, that
+        channel's reference is not one the vehicle follows: its rows are not identified."""
         if abs(h - self.h) > 1e-12:
             msg = f'cloe_iv runs at a fixed step of {self.h} s, got {h}'
             raise ValueError(msg)
@@ -157,4 +160,7 @@ class CloeIvEstimator:
         np.clip(self.gain_l, cfg.l_min, cfg.l_max, out=self.gain_l)
         # identify only while commanded to fly: on the ground the closed-loop model does not hold
         self.flying = r[:, 3] > cfg.ground_altitude
-        self.identifier.step(zeta, r, self.flying)
+        active = self.flying
+        if tracked is not None and not np.all(tracked):
+            active = self.flying[:, None] & np.asarray(tracked, dtype=bool)[:, ROW_CHANNEL]
+        self.identifier.step(zeta, r, active)

@@ -51,6 +51,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from cloe_ros.core.algorithms import make_estimator
+from cloe_ros.core.anticipation import POSITION, AnticipationConfig, Anticipator, TrustStatus
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
 from cloe_ros.core.kinematics import (
@@ -60,7 +61,7 @@ from cloe_ros.core.kinematics import (
     unwrap_near,
 )
 from cloe_ros.core.model import unstable_blocks
-from cloe_ros.core.prediction import PredictionConfig, Predictor
+from cloe_ros.core.prediction import PredictionConfig, Predictor, plan_references
 from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
 
 NS = 1_000_000_000
@@ -91,6 +92,8 @@ class EngineConfig:
         world_frame: Required ``header.frame_id``; empty: the first frame seen, then that one.
         quaternion_tolerance: Largest accepted ``| ||q|| - 1 |``.
         prediction: Horizon, pose spacing and rate of the anticipated paths.
+        anticipation: Intent, reference trust, guard and radius of the predictions
+            (:mod:`cloe_ros.core.anticipation`).
 
     """
 
@@ -101,6 +104,7 @@ class EngineConfig:
     world_frame: str = ''
     quaternion_tolerance: float = 0.1
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
+    anticipation: AnticipationConfig = field(default_factory=AnticipationConfig)
 
     def __post_init__(self) -> None:
         checks = (
@@ -140,6 +144,11 @@ class Estimate:
             coupling (2,))``: for ``cloe_iv`` the identifier's usable model (stable, from rows
             at least converging, else the prior), which differs from ``theta_hat`` while that is
             not usable; for the paper's algorithms ``theta_hat`` and ``coupling`` themselves.
+        trust: Whether the vehicle tracks each reference channel (x, y, psi, z) (None before the
+            first prediction decision, or without predictions).
+        prediction_radius: With ``prediction``: the 95 % radius of each pose (n,), m.
+        prediction_weights: With ``prediction``: the guard's weight of each candidate per pose
+            (n, M), :data:`~cloe_ros.core.anticipation.CANDIDATES` order.
 
     """
 
@@ -155,6 +164,9 @@ class Estimate:
     prediction_status: int = 0
     prediction_note: str = ''
     model: tuple[np.ndarray, np.ndarray] | None = None
+    trust: TrustStatus | None = None
+    prediction_radius: np.ndarray | None = None
+    prediction_weights: np.ndarray | None = None
 
     @property
     def error(self) -> np.ndarray:
@@ -183,6 +195,7 @@ class VehicleStats:
     plans_accepted: int = 0
     predictions: int = 0
     predictions_withheld: int = 0
+    untracked_steps: int = 0  # steps with a reference channel not tracked
     last_error_norm: float = float('nan')
     last_stamp_ns: int | None = None
 
@@ -261,6 +274,13 @@ class VehicleEngine:
         self._held_refs: deque[tuple[int, np.ndarray]] = deque()  # references off the timeline
         self._held_refs_backward = False  # held for being behind it (else: ahead of it)
         self._rejections: deque[Rejection] = deque(maxlen=100)  # for take_rejections
+        prediction = config.prediction
+        self._anticipator = Anticipator(
+            config.anticipation, prediction.step, max(prediction.n_poses, 1), config.rate,
+            prediction.rate, config.estimator.ground_altitude,
+        ) if prediction.enabled else None  # fmt: skip
+        self._t0_ns: int | None = None  # origin of the anticipator's seconds
+        self._trust: TrustStatus | None = None
 
     # ----------------------------------------------------------------------------- inputs
 
@@ -507,6 +527,7 @@ class VehicleEngine:
 
     def _stop_estimator(self) -> None:
         self._history.clear()
+        self._clear_anticipation()
         if self._est is not None:
             self._model = (self._est.theta_hat[0].copy(), self._est.gain_l[0].copy())
         self._est = None
@@ -523,6 +544,13 @@ class VehicleEngine:
         self._model = None
         self._prediction_slot = None
         self._history.clear()
+        self._clear_anticipation()
+
+    def _clear_anticipation(self) -> None:
+        if self._anticipator is not None:
+            self._anticipator.clear()
+        self._t0_ns = None
+        self._trust = None
 
     def update_estimator(self, config: EstimatorConfig) -> None:
         """Use new gains from the next step on, keeping the state and the identified model.
@@ -666,19 +694,31 @@ class VehicleEngine:
             if zeta is None:
                 break
             r = self._reference_at(t_next, zeta[8])
+            used, tracked = self._reference_for_step(zeta, r)
             try:
-                est.step(zeta[None], r[None], h)
+                est.step(zeta[None], used[None], h, None if tracked is None else tracked[None])
                 self._t_ns = t_next
-                self._last_r = r
-                self._track_offsets(zeta, r)
+                self._last_r = used
+                self._track_offsets(zeta, used)
                 if not (np.all(np.isfinite(est.zeta_hat)) and np.all(np.isfinite(est.theta_hat))):
                     raise FloatingPointError('non-finite estimate')
-                out.append(self._estimate(t_next, zeta, r))
+                out.append(self._estimate(t_next, zeta, r, used))
             except NUMERICAL_FAILURES:
                 # a diverged estimator never publishes: start over on the next step's data
                 self._diverged(t_next)
                 break
         return out
+
+    def _reference_for_step(
+        self, zeta: np.ndarray, r: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The reference the estimator steps with and which channels are tracked (None: all):
+        a channel whose reference the vehicle does not track takes the virtual reference of its
+        motion, and is not identified (:class:`~cloe_ros.core.anticipation.Anticipator`)."""
+        if self._anticipator is None or self._trust is None:
+            return r, None
+        used, tracked = self._anticipator.reference_for_estimator(zeta, r)
+        return used, None if tracked.all() else tracked
 
     def _diverged(self, t_ns: int | None) -> None:
         """The estimator failed numerically at ``t_ns``: count it, restart at the next step."""
@@ -687,7 +727,12 @@ class VehicleEngine:
         self.reset()
         self.stats.resets -= 1  # (counted as a divergence, not a user's reset)
 
-    def _estimate(self, t_ns: int, zeta: np.ndarray, r: np.ndarray) -> Estimate:
+    def _estimate(
+        self, t_ns: int, zeta: np.ndarray, r: np.ndarray, used: np.ndarray | None = None
+    ) -> Estimate:
+        """The estimate at ``t_ns``: ``r`` is the reference as received, ``used`` the one the
+        estimator stepped with (the same unless a channel is not tracked)."""
+        used = r if used is None else used
         est = self._est
         ident = getattr(est, 'identifier', None)
         model_theta, model_coupling = est.model
@@ -702,12 +747,19 @@ class VehicleEngine:
             identification=None if ident is None else (
                 ident.excitation[0].copy(), ident.uncertainty[0].copy(), ident.status[0].copy()),
             model=(model_theta[0].copy(), model_coupling[0].copy()),
+            trust=self._trust,
         )  # fmt: skip
         self.stats.steps += 1
         self.stats.last_stamp_ns = t_ns
         self.stats.last_error_norm = float(np.linalg.norm(e.error))
+        if self._trust is not None and not self._trust.all_tracked:
+            self.stats.untracked_steps += 1
         if self._window:
-            self._history.append((e.zeta_hat, r))
+            self._history.append((e.zeta_hat, used))
+        if self._anticipator is not None:
+            if self._t0_ns is None:
+                self._t0_ns = t_ns
+            self._anticipator.observe((t_ns - self._t0_ns) / NS, zeta, e.zeta_hat, used, r)
         if self.config.prediction.enabled:
             slot = t_ns // round(NS / self.config.prediction.rate)
             if self._prediction_slot is None or slot > self._prediction_slot:
@@ -747,20 +799,34 @@ class VehicleEngine:
             )
             self.stats.predictions_withheld += 1
             return
-        # the reference, shifted by the steady-state offsets (see _track_offsets)
+        ant = self._anticipator
+        t = (e.stamp_ns - self._t0_ns) / NS
+        ant.update(t, theta, coupling)
+        self._trust = e.trust = ant.trust.status()
+        tracked = ant.trust.followed
+        # the reference, shifted by the steady-state offsets (see _track_offsets) where tracked
         gains = self._predictor.static_gains(theta, coupling)
         self._gains = gains
         shift = np.divide(self._offset, gains, out=np.zeros(4), where=np.abs(gains) > 0.1)
+        shift[~tracked] = 0.0
         offsets = self._recent_offsets(theta, coupling, shift)
         plan = None
         if self._plan is not None and self._plan[0][-1] > e.stamp_ns:
             stamps, refs = self._plan
             refs = refs.copy()
             refs[:, 2] = refs[:, 2] + (unwrap_near(refs[0, 2], e.zeta_hat[8]) - refs[0, 2])
-            plan = ((stamps - e.stamp_ns) / NS, refs + shift)
+            plan = plan_references(e.reference, ((stamps - e.stamp_ns) / NS, refs),
+                                   ant.starts)  # fmt: skip
+        # the future reference: the plan, else the intent; untracked channels: the virtual one
+        path, _ = ant.reference_path(t, e.measured, plan)
+        path += shift
         states = self._predictor.predict(
-            e.zeta_hat, theta, coupling, e.reference + shift, plan, offsets
+            e.zeta_hat, theta, coupling, path[0], (ant.starts, path), offsets
         )
+        anticipation = ant.combine(t, states[:, POSITION], e.measured, coupling)
+        states[:, POSITION] = anticipation.positions
+        e.prediction_radius = anticipation.radius
+        e.prediction_weights = anticipation.weights
         n = len(states)
         step_ns = round(self.config.prediction.step * NS)
         e.prediction = (e.stamp_ns + step_ns * np.arange(1, n + 1, dtype=np.int64), states)

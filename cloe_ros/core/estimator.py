@@ -169,6 +169,8 @@ class StepBuffers:
 
 
 _A_KNOWN_T = np.ascontiguousarray(A_KNOWN.T)
+#: For each entry of Theta: the reference channel of its block.
+PARAM_CHANNEL = np.array([b.reference for b in BLOCKS for _ in range(b.n_params)], dtype=np.intp)
 #: (4, 12) matrix placing one value per block on the block's last row.
 _TO_LAST_ROWS = np.zeros((len(BLOCKS), N_STATES))
 _TO_LAST_ROWS[np.arange(len(BLOCKS)), UNKNOWN_ROWS] = 1.0
@@ -206,6 +208,7 @@ def cloe_step(
     exponents: np.ndarray,
     buf: StepBuffers,
     use_sm: bool = True,
+    theta_gate: np.ndarray | None = None,
 ) -> None:
     """Advance N estimators by one step of ``h`` seconds, in place.
 
@@ -222,6 +225,8 @@ def cloe_step(
         exponents: Sliding-mode exponents (N, 12).
         buf: Work arrays from :meth:`StepBuffers.allocate`.
         use_sm: Skip the sliding-mode term altogether (all ``lambda_`` zero).
+        theta_gate: (N, 16) 1 where a parameter adapts, 0 where it is held (its block's
+            reference is not tracked); None: all adapt.
 
     """
     e, tmp, tmp2 = buf.e, buf.tmp, buf.tmp2
@@ -247,6 +252,8 @@ def cloe_step(
     buf.grad *= buf.phi
     buf.grad *= gamma_theta
     buf.grad *= h
+    if theta_gate is not None:
+        buf.grad *= theta_gate
     theta_hat += buf.grad
     # Adaptive observer gain: l_i' = gamma_i e_i^2.
     np.square(e, out=tmp)
@@ -300,8 +307,14 @@ class CloeEstimator:
     def n_vehicles(self) -> int:
         return self.zeta_hat.shape[0]
 
-    def step(self, zeta: np.ndarray, r: np.ndarray, h: float) -> None:
-        """Advance ``h`` s to the measurement ``zeta`` (N, 12) with the reference ``r`` (N, 4)."""
+    def step(
+        self, zeta: np.ndarray, r: np.ndarray, h: float, tracked: np.ndarray | None = None
+    ) -> None:
+        """Advance ``h`` s to the measurement ``zeta`` (N, 12) with the reference ``r`` (N, 4).
+        Where ``tracked`` (N, 4) is False, the parameters of that channel's block are held."""
+        gate = None
+        if tracked is not None and not np.all(tracked):
+            gate = np.asarray(tracked, dtype=float)[:, PARAM_CHANNEL]
         cloe_step(
             self.zeta_hat,
             self.theta_hat,
@@ -315,6 +328,7 @@ class CloeEstimator:
             self.exponents,
             self.buffers,
             self.use_sm,
+            gate,
         )
 
     @property

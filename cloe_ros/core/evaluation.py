@@ -269,3 +269,176 @@ def run_engine(
     engine = VehicleEngine(algorithm_config)
     recorded, predicted = feed(engine, t, zeta, reference, plans, progress=progress)
     return collect(algorithm_config.estimator.algorithm, engine, recorded, predicted)
+
+
+# ----------------------------------------------------------------- real flights, a corpus
+
+#: Reference-free and reference-following baselines every prediction is scored beside.
+BASELINES = ('constant_velocity', 'hold_position', 'reference_held', 'reference_lag')
+#: Lags the reference-lag baseline searches, s, and the recent past it fits them on, s.
+LAGS = np.arange(0.0, 1.51, 0.05)
+LAG_WINDOW = 5.0
+
+
+def interpolate(t: np.ndarray, values: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """``values`` (T, C) sampled at increasing ``t`` (T,), at ``times`` (...,): (..., C), NaN
+    outside ``[t[0], t[-1]]``."""
+    times = np.asarray(times, float)
+    out = np.full((*times.shape, values.shape[1]), np.nan)
+    if not len(t):
+        return out
+    ok = (times >= t[0]) & (times <= t[-1])
+    for j in range(values.shape[1]):
+        out[..., j] = np.where(ok, np.interp(times, t, values[:, j]), np.nan)
+    return out
+
+
+def held(t: np.ndarray, values: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """The latest sample of ``values`` at or before each of ``times`` (NaN before the first)."""
+    idx = np.searchsorted(t, np.asarray(times, float), side='right') - 1
+    out = values[np.clip(idx, 0, None)].astype(float)
+    out[idx < 0] = np.nan
+    return out
+
+
+def causal_lag(t_pos: np.ndarray, pos: np.ndarray, t_ref: np.ndarray, ref: np.ndarray,
+               now: float) -> float | None:  # fmt: skip
+    """The lag (s, in ``LAGS``) with which the positions of the last ``LAG_WINDOW`` before
+    ``now`` best follow the reference, ``p(s) ~ r(s - lag)``; None without enough data."""
+    m = (t_pos > now - LAG_WINDOW) & (t_pos <= now)
+    s = t_pos[m][::5]
+    if len(s) < 10:
+        return None
+    p = pos[m][::5]
+    costs = np.full(len(LAGS), np.nan)
+    for i, lag in enumerate(LAGS):
+        sq = np.sum((p - held(t_ref, ref, s - lag)) ** 2, axis=1)
+        if np.isfinite(sq).any():
+            costs[i] = np.nanmean(sq)
+    if not np.isfinite(costs).any():
+        return None
+    return float(LAGS[int(np.nanargmin(costs))])
+
+
+@dataclass
+class FlightRecord:
+    """What one vehicle's replay gives the corpus evaluation.
+
+    Attributes:
+        name: The flight (bag, and vehicle when there are several).
+        t0: The first odometry stamp, s since the epoch (every other time is relative to it).
+        odom_t, odom_p: Odometry stamps (T,) and positions (T, 3): what the vehicle did.
+        ref_t, ref_p: Reference stamps (R,) and positions (R, 3) as received.
+        issue_t: Issue times of the predictions (P,).
+        state: The measured state at each issue time (P, 12).
+        predicted: The published positions at each horizon (P, H, 3) (NaN past the path).
+        radius: The published 95 % radius at each horizon (P, H).
+        tracked: Per issue time, whether each reference channel was tracked (P, 4).
+        horizons: The horizons, s (H,).
+
+    """
+
+    name: str
+    t0: float
+    odom_t: np.ndarray
+    odom_p: np.ndarray
+    ref_t: np.ndarray
+    ref_p: np.ndarray
+    issue_t: np.ndarray
+    state: np.ndarray
+    predicted: np.ndarray
+    radius: np.ndarray
+    tracked: np.ndarray
+    horizons: tuple[float, ...] = HORIZONS
+
+
+@dataclass
+class FlightScore:
+    """Prediction RMSE per horizon (m) of the package and the baselines on one flight.
+
+    ``rmse`` maps ``'model'`` and each of ``BASELINES`` to (H,) arrays; ``coverage`` is the
+    fraction of scored positions inside the published radius (H,); ``count`` the scored
+    predictions per horizon; ``worst_ratio`` the largest, over horizons, of the model's RMSE over
+    the better of constant velocity and hold; ``untracked`` the fraction of the scored issue
+    times with a reference channel not tracked."""
+
+    name: str
+    horizons: tuple[float, ...]
+    rmse: dict[str, np.ndarray]
+    coverage: np.ndarray
+    count: np.ndarray
+    worst_ratio: float
+    untracked: float
+
+    def as_dict(self) -> dict:
+        return {
+            'name': self.name,
+            'horizons_s': list(self.horizons),
+            'rmse_m': {k: v.tolist() for k, v in self.rmse.items()},
+            'coverage': self.coverage.tolist(),
+            'count': self.count.tolist(),
+            'worst_ratio': self.worst_ratio,
+            'untracked_fraction': self.untracked,
+        }
+
+
+def baseline_paths(record: FlightRecord) -> dict[str, np.ndarray]:
+    """The baselines' positions (P, H, 3) from each issue time of ``record``:
+
+    * ``constant_velocity`` and ``hold_position`` from the measured state at the issue time;
+    * ``reference_held``: the reference at the issue time, at every horizon;
+    * ``reference_lag``: the vehicle follows its reference with a lag ``L`` estimated causally
+      (:func:`causal_lag`): ``r(t + h - L)`` while that is in the past, else ``r(t)``.
+    """
+    h = np.asarray(record.horizons, float)
+    p0 = record.state[:, [0, 4, 10]]
+    v0 = record.state[:, [1, 5, 11]]
+    out = {
+        'constant_velocity': p0[:, None, :] + h[None, :, None] * v0[:, None, :],
+        'hold_position': np.broadcast_to(p0[:, None, :], (len(p0), len(h), 3)).copy(),
+    }
+    now_ref = held(record.ref_t, record.ref_p, record.issue_t)
+    out['reference_held'] = np.broadcast_to(now_ref[:, None, :], out['hold_position'].shape).copy()
+    lagged = out['reference_held'].copy()
+    for i, t in enumerate(record.issue_t):
+        lag = causal_lag(record.odom_t, record.odom_p, record.ref_t, record.ref_p, t)
+        if lag is None:
+            continue
+        back = np.minimum(t + h - lag, t)
+        lagged[i] = held(record.ref_t, record.ref_p, back)
+    out['reference_lag'] = lagged
+    return out
+
+
+def score_flight(record: FlightRecord, score_from: float = 5.0) -> FlightScore:
+    """RMSE per horizon of the published predictions and the baselines against the odometry
+    that followed, for predictions issued ``score_from`` s or more after the first odometry
+    (each scored where the odometry covers its horizon); the coverage of the radius."""
+    h = np.asarray(record.horizons, float)
+    keep = record.issue_t >= score_from
+    truth = interpolate(record.odom_t, record.odom_p, record.issue_t[keep, None] + h[None, :])
+    paths = {'model': record.predicted[keep]}
+    paths.update({k: v[keep] for k, v in baseline_paths(record).items()})
+    ok = np.isfinite(truth).all(axis=-1) & np.isfinite(paths['model']).all(axis=-1)
+    rmse = {}
+    for name, pred in paths.items():
+        sq = np.sum((pred - truth) ** 2, axis=-1)
+        rmse[name] = np.array([np.sqrt(np.mean(sq[ok[:, j], j])) if ok[:, j].any() else np.nan
+                               for j in range(len(h))])  # fmt: skip
+    err = np.sqrt(np.sum((paths['model'] - truth) ** 2, axis=-1))
+    inside = err <= record.radius[keep]
+    coverage = np.array([np.mean(inside[ok[:, j], j]) if ok[:, j].any() else np.nan
+                         for j in range(len(h))])  # fmt: skip
+    best = np.minimum(rmse['constant_velocity'], rmse['hold_position'])
+    with np.errstate(invalid='ignore', divide='ignore'):
+        ratio = rmse['model'] / best
+    tracked = record.tracked[keep]
+    return FlightScore(
+        name=record.name,
+        horizons=record.horizons,
+        rmse=rmse,
+        coverage=coverage,
+        count=ok.sum(axis=0),
+        worst_ratio=float(np.nanmax(ratio)) if np.isfinite(ratio).any() else float('nan'),
+        untracked=float(np.mean(~tracked.all(axis=1))) if len(tracked) else 0.0,
+    )

@@ -71,6 +71,8 @@ ROW_NAMES = ('x_theta', 'y_phi', 'psi', 'z', 'x_coupling', 'y_coupling', 'x_loop
 N_ROWS = len(ROW_NAMES)
 COUPLING_ROWS = (4, 5)
 LOOP_ROWS = (6, 7)
+#: The reference channel (x_d, y_d, psi_d, z_d) each row's block follows.
+ROW_CHANNEL = np.array([0, 1, 2, 3, 0, 1, 0, 1])
 
 #: The reduced model of a 4th-order block: a cascade whose attitude loop is assumed (stiffness
 #: ``k_a``, damping ``k_d``: omega 14 rad/s, zeta 0.7, much faster than any position loop), so only
@@ -451,13 +453,21 @@ class IvIdentifier:
 
     def step(self, zeta: np.ndarray, r: np.ndarray, active: np.ndarray | None = None) -> None:
         """Take the measurement ``zeta`` (N, 12) and the reference ``r`` (N, 4) of the same
-        time; update the estimate. Vehicles with ``active`` False (N,) keep filtering but add
-        nothing to the estimate (e.g. while landed, when the closed-loop model does not hold)."""
+        time; update the estimate. Vehicles with ``active`` False (N,), or rows with ``active``
+        False (N, rows), keep filtering but add nothing to the estimate (e.g. while landed, or
+        while the vehicle does not track that row's reference: the closed-loop model does not
+        hold)."""
         cfg, h = self.config, self.h
+        if active is not None:
+            active = np.asarray(active, dtype=bool)
+            if active.ndim == 1:
+                active = np.broadcast_to(active[:, None], (active.shape[0], N_ROWS))
+            if active.all():
+                active = None
         k = self._hist_next
         self._hist_z[:, k] = zeta
         self._hist_r[:, k] = r
-        self._hist_active[:, k] = True if active is None else active
+        self._hist_active[:, k] = True if active is None else active.all(axis=1)
         self._hist_next = (k + 1) % self._hist_z.shape[1]
         self._hist_count += 1
         # auxiliary model: driven by the reference only
@@ -480,9 +490,9 @@ class IvIdentifier:
         y = f @ Y_F_MAP.T + d @ Y_D_MAP.T  # (N, rows)
 
         # short-window statistics (always forgetting) and the excitation gate
-        if active is not None and not np.all(active):
-            gate = np.asarray(active, dtype=float)[:, None, None]
-            phi, xi, y = phi * gate, xi * gate, y * gate[:, :, 0]
+        if active is not None:
+            gate = active.astype(float)
+            phi, xi, y = phi * gate[:, :, None], xi * gate[:, :, None], y * gate
         xp = xi[..., :, None] * phi[..., None, :]
         xp *= h
         xx = xi[..., :, None] * xi[..., None, :]
@@ -502,7 +512,7 @@ class IvIdentifier:
             self._update_excitation()
         excited = self.excitation >= cfg.excitation_threshold  # (N, 6)
         if active is not None:
-            excited &= np.asarray(active, dtype=bool)[:, None]
+            excited &= active
 
         # long-window normal equations, forgetting only while excited
         mu = np.where(excited, self._mu, 1.0)

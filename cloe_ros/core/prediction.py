@@ -105,6 +105,13 @@ class Predictor:
             self._discrete[dt] = discretise(theta, coupling, dt)
         return self._discrete[dt]
 
+    def discretisation(
+        self, theta: np.ndarray, coupling: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The model's exact discretisation over the prediction step (cached)."""
+        return self._discretise(np.asarray(theta, float), np.asarray(coupling, float),
+                                self.config.step)  # fmt: skip
+
     def recent_offset(
         self, theta: np.ndarray, coupling: np.ndarray, states: np.ndarray, refs: np.ndarray,
         dt: float,
@@ -157,13 +164,7 @@ class Predictor:
         if not self._stable:
             return None
         n = self.config.n_poses
-        refs = np.broadcast_to(r_now, (n, N_REFERENCES)).copy()
-        if plan is not None and len(plan[0]):
-            times, values = plan
-            starts = self.config.step * np.arange(n)
-            idx = np.searchsorted(times, starts + 1e-9, side='right') - 1
-            have = idx >= 0
-            refs[have] = values[idx[have]]
+        refs = plan_references(r_now, plan, self.config.step * np.arange(n))
         if offsets is not None:
             refs += offsets
         out = np.empty((n, N_STATES))
@@ -172,6 +173,21 @@ class Predictor:
             x = ad @ x + bd @ refs[k]
             out[k] = x
         return out
+
+
+def plan_references(
+    r_now: np.ndarray, plan: tuple[np.ndarray, np.ndarray] | None, starts: np.ndarray
+) -> np.ndarray:
+    """The references (len(starts), 4) held over prediction steps starting at ``starts`` s from
+    now: the latest planned value at or before each start (``plan``: times (K,) s relative to
+    now, increasing, and values (K, 4)), ``r_now`` before the plan's first time."""
+    refs = np.broadcast_to(np.asarray(r_now, float), (len(starts), N_REFERENCES)).copy()
+    if plan is not None and len(plan[0]):
+        times, values = plan
+        idx = np.searchsorted(times, starts + 1e-9, side='right') - 1
+        have = idx >= 0
+        refs[have] = values[idx[have]]
+    return refs
 
 
 #: Outputs the offset is fitted on: x, y, yaw, z.

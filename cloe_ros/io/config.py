@@ -22,6 +22,7 @@ from typing import Any
 
 import yaml
 
+from cloe_ros.core.anticipation import AnticipationConfig
 from cloe_ros.core.engine import EngineConfig
 from cloe_ros.core.estimator import (
     ALGORITHMS,
@@ -66,6 +67,12 @@ DEFAULTS: dict[str, Any] = {
     'id_excitation_threshold': 0.02,
     'estimate_coupling': True,
     'ground_altitude': 0.05,
+    'prediction_intent': True,
+    'prediction_guard': True,
+    'prediction_coverage': 0.95,
+    'reference_trust': True,
+    'reference_trust_ratio': 3.0,
+    'reference_trust_floor': 0.3,
 }
 #: Closed range of every numeric setting: the node's declared range and what ``cloe infer`` takes.
 RANGES: dict[str, tuple[float, float]] = {
@@ -90,7 +97,12 @@ RANGES: dict[str, tuple[float, float]] = {
     'id_excitation_window': (0.1, 1e6),
     'id_excitation_threshold': (0.0, 1.0),
     'ground_altitude': (-1e3, 1e3),
+    'prediction_coverage': (0.5, 0.999),
+    'reference_trust_ratio': (1.0, 100.0),
+    'reference_trust_floor': (0.0, 1e3),
 }
+#: Settings that are true or false.
+FLAGS = ('estimate_coupling', 'prediction_intent', 'prediction_guard', 'reference_trust')
 #: Node-only parameters a shared YAML file may also carry (ignored by ``cloe infer``).
 NODE_ONLY = ('vehicles', 'diagnostics_period', 'qos_reliability', 'qos_depth', 'use_sim_time')
 
@@ -111,9 +123,9 @@ def build_configs(values: dict[str, Any]) -> tuple[EngineConfig, OutputConfig]:
     if v['algorithm'] not in ALGORITHMS:
         reason = f'{v["algorithm"]!r} is not one of {", ".join(ALGORITHMS)}'
         raise SettingsError(reason, 'algorithm')
-    if not isinstance(v['estimate_coupling'], bool):
-        reason = f'must be true or false, got {v["estimate_coupling"]!r}'
-        raise SettingsError(reason, 'estimate_coupling')
+    for flag in FLAGS:
+        if not isinstance(v[flag], bool):
+            raise SettingsError(f'must be true or false, got {v[flag]!r}', flag)
     n = {name: _number(v, name) for name in RANGES}
     gains, exponents = _numbers(v, 'sm_gains'), _numbers(v, 'sm_exponents')
     for k, g in enumerate(gains):
@@ -164,6 +176,14 @@ def build_configs(values: dict[str, Any]) -> tuple[EngineConfig, OutputConfig]:
                 step=n['prediction_step'],
                 rate=n['prediction_rate'],
                 disturbance_time=n['prediction_disturbance_time'],
+            ),
+            anticipation=AnticipationConfig(
+                intent=v['prediction_intent'],
+                guard=v['prediction_guard'],
+                trust=v['reference_trust'],
+                coverage=n['prediction_coverage'],
+                trust_ratio=n['reference_trust_ratio'],
+                trust_floor=n['reference_trust_floor'],
             ),
         )
         output = OutputConfig(str(v['output_ns']), n['parameters_rate'])

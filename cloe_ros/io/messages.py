@@ -24,6 +24,7 @@ PATH = 'nav_msgs/msg/Path'
 FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 CLOCK = 'rosgraph_msgs/msg/Clock'
+MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 
 _T = TYPESTORE.types
 Time = _T['builtin_interfaces/msg/Time']
@@ -45,6 +46,12 @@ KeyValue = _T['diagnostic_msgs/msg/KeyValue']
 DiagnosticStatus = _T['diagnostic_msgs/msg/DiagnosticStatus']
 DiagnosticArray = _T[DIAGNOSTIC_ARRAY]
 Clock = _T[CLOCK]
+ColorRGBA = _T['std_msgs/msg/ColorRGBA']
+Duration = _T['builtin_interfaces/msg/Duration']
+Marker = _T['visualization_msgs/msg/Marker']
+MarkerArray = _T[MARKER_ARRAY]
+MeshFile = _T['visualization_msgs/msg/MeshFile']
+CompressedImage = _T['sensor_msgs/msg/CompressedImage']
 
 
 class MessageError(CloeError):
@@ -207,6 +214,66 @@ def encode_float64_multi_array(labels: Sequence[str], data: np.ndarray) -> bytes
     return bytes(
         TYPESTORE.serialize_cdr(Float64MultiArray(layout=layout, data=data), FLOAT64_MULTI_ARRAY)
     )
+
+
+def encode_multi_array(dims: Sequence[tuple[str, int]], data: np.ndarray) -> bytes:
+    """CDR of a ``std_msgs/msg/Float64MultiArray`` of shape ``[size for _, size in dims]``,
+    row-major (``dim[i].stride`` the product of the sizes from ``i`` on), each dimension
+    labelled."""
+    data = np.ascontiguousarray(data, dtype=np.float64).ravel()
+    sizes = [int(n) for _, n in dims]
+    if int(np.prod(sizes)) != data.size:
+        msg = f'dimensions {sizes} for {data.size} values'
+        raise ValueError(msg)
+    strides = np.cumprod(sizes[::-1])[::-1]
+    layout = MultiArrayLayout(
+        dim=[MultiArrayDimension(label=label, size=n, stride=int(st))
+             for (label, n), st in zip(dims, strides)],
+        data_offset=0,
+    )  # fmt: skip
+    return bytes(
+        TYPESTORE.serialize_cdr(Float64MultiArray(layout=layout, data=data), FLOAT64_MULTI_ARRAY)
+    )
+
+
+def _marker(stamp_ns: int, frame_id: str, ns: str, marker_id: int, kind: int, position,
+            scale: float, rgba, lifetime_ns: int, points=()) -> object:  # fmt: skip
+    sec, nanosec = divmod(int(lifetime_ns), 1_000_000_000)
+    return Marker(
+        header=Header(stamp=ns_to_time(stamp_ns), frame_id=frame_id),
+        ns=ns, id=int(marker_id), type=kind, action=Marker.ADD,
+        pose=_pose(position, np.array([0.0, 0.0, 0.0, 1.0])),
+        scale=Vector3(x=float(scale), y=float(scale), z=float(scale)),
+        color=ColorRGBA(r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]), a=float(rgba[3])),
+        lifetime=Duration(sec=sec, nanosec=nanosec), frame_locked=False,
+        points=[Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in points], colors=[],
+        texture_resource='', texture=CompressedImage(header=Header(stamp=Time(sec=0, nanosec=0),
+                                                                   frame_id=''),
+                                                     format='', data=np.zeros(0, np.uint8)),
+        uv_coordinates=[], text='', mesh_resource='',
+        mesh_file=MeshFile(filename='', data=np.zeros(0, np.uint8)),
+        mesh_use_embedded_materials=False,
+    )  # fmt: skip
+
+
+def encode_prediction_markers(
+    stamp_ns: int, frame_id: str, positions: np.ndarray, radii: np.ndarray, lifetime_ns: int,
+    every: int = 5,
+) -> bytes:  # fmt: skip
+    """CDR of a ``visualization_msgs/msg/MarkerArray`` drawing a prediction: the path as a line
+    strip (``ns`` ``prediction``, id 0) and, at every ``every``-th pose, a translucent sphere of
+    the pose's 95 % radius (``ns`` ``prediction_radius``, ids 1, 2, ...; diameter = 2 radius).
+
+    Every marker is stamped with the prediction's issue time (a future stamp would make RViz
+    look up a transform that does not exist yet) and lives ``lifetime_ns``, so a stale
+    prediction disappears."""
+    markers = [_marker(stamp_ns, frame_id, 'prediction', 0, Marker.LINE_STRIP, np.zeros(3), 0.02,
+                       (0.1, 0.5, 1.0, 0.9), lifetime_ns, positions)]  # fmt: skip
+    for i, k in enumerate(range(every - 1, len(positions), every), start=1):
+        markers.append(_marker(stamp_ns, frame_id, 'prediction_radius', i, Marker.SPHERE,
+                               positions[k], 2.0 * float(radii[k]), (0.1, 0.5, 1.0, 0.15),
+                               lifetime_ns))  # fmt: skip
+    return bytes(TYPESTORE.serialize_cdr(MarkerArray(markers=markers), MARKER_ARRAY))
 
 
 def encode_clock(ns: int) -> bytes:

@@ -3,7 +3,9 @@
 Both call :meth:`OutputEncoder.encode` on the same sequence of estimates, so they emit the same
 messages with the same stamps: ``<ns>/<output_ns>/state`` at every step, ``<ns>/<output_ns>/
 parameters`` whenever the estimate time crosses a multiple of the parameter period (message time),
-and ``<ns>/<output_ns>/prediction`` whenever the engine attached an anticipated path.
+and, whenever the engine attached an anticipated path, ``<ns>/<output_ns>/prediction``, its
+95 % radii ``<ns>/<output_ns>/prediction_radius`` and the markers that draw both
+``<ns>/<output_ns>/prediction_markers``.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cloe_ros.core.anticipation import CHANNELS
 from cloe_ros.core.engine import NS, Estimate
 from cloe_ros.core.identifier import ROW_NAMES
 from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry_one
@@ -20,11 +23,14 @@ from cloe_ros.core.samples import OdometrySample, PathSample
 from cloe_ros.errors import CloeError
 from cloe_ros.io.messages import (
     FLOAT64_MULTI_ARRAY,
+    MARKER_ARRAY,
     ODOMETRY,
     PATH,
     encode_float64_multi_array,
+    encode_multi_array,
     encode_odometry,
     encode_path,
+    encode_prediction_markers,
 )
 
 #: Labels of ``cloe/parameters``: ``layout.dim[i].label`` names ``data[i]``. Theta_hat (16),
@@ -32,7 +38,9 @@ from cloe_ros.io.messages import (
 #: and status (0 not identifiable, 1 converging, 2 identified; NaN / -1 when the algorithm does not
 #: measure them), the status of the last prediction (0 withheld, 1 provisional, 2 identified), and
 #: the model the observer runs on and the predictions integrate (``model.theta.*`` (16),
-#: ``model.coupling.*`` (2); see :attr:`~cloe_ros.core.engine.Estimate.model`).
+#: ``model.coupling.*`` (2); see :attr:`~cloe_ros.core.engine.Estimate.model`), and whether the
+#: vehicle tracks each reference channel (``reference.tracked.*``: 1 tracked, 0 not tracked, -1
+#: not decided yet; see :mod:`cloe_ros.core.anticipation`).
 PARAMETER_LABELS: tuple[str, ...] = tuple(
     [f'theta_hat.{name}' for name in PARAMETER_NAMES]
     + [f'L.{name}' for name in STATE_NAMES]
@@ -43,7 +51,11 @@ PARAMETER_LABELS: tuple[str, ...] = tuple(
     + ['prediction.status']
     + [f'model.theta.{name}' for name in PARAMETER_NAMES]
     + [f'model.coupling.{b.name}' for b in COUPLED_BLOCKS]
+    + [f'reference.tracked.{c}' for c in CHANNELS]
 )
+#: Layout of ``<output_ns>/prediction_radius``: one row per pose of the prediction of the same
+#: stamp, holding the pose's stamp (s since the epoch) and its 95 % radius (m).
+RADIUS_COLUMNS = 'stamp_s,radius_m'
 
 
 class OutputConfigError(CloeError, ValueError):
@@ -89,7 +101,11 @@ class OutputEncoder:
         self.state_topic = join_topic(vehicle, config.output_ns, 'state')
         self.parameters_topic = join_topic(vehicle, config.output_ns, 'parameters')
         self.prediction_topic = join_topic(vehicle, config.output_ns, 'prediction')
+        self.radius_topic = join_topic(vehicle, config.output_ns, 'prediction_radius')
+        self.markers_topic = join_topic(vehicle, config.output_ns, 'prediction_markers')
         self._period_ns = round(NS / config.parameters_rate)
+        #: How long a prediction's markers stay drawn: until the next one, and some.
+        self.marker_lifetime_ns = NS
         self._last_slot: int | None = None
         self._prediction_status = 0
 
@@ -99,6 +115,8 @@ class OutputEncoder:
         topics = {self.state_topic: ODOMETRY, self.parameters_topic: FLOAT64_MULTI_ARRAY}
         if self.predictions:
             topics[self.prediction_topic] = PATH
+            topics[self.radius_topic] = FLOAT64_MULTI_ARRAY
+            topics[self.markers_topic] = MARKER_ARRAY
         return topics
 
     def encode(
@@ -109,13 +127,12 @@ class OutputEncoder:
         if estimate.prediction is not None or estimate.prediction_note:
             self._prediction_status = estimate.prediction_status
         if estimate.prediction is not None:
-            out.append(
-                (
-                    self.prediction_topic,
-                    estimate.stamp_ns,
-                    encode_prediction(estimate, world_frame),
-                )
-            )
+            stamp = estimate.stamp_ns
+            out.append((self.prediction_topic, stamp, encode_prediction(estimate, world_frame)))
+            if estimate.prediction_radius is not None:
+                out.append((self.radius_topic, stamp, encode_radius(estimate)))
+                markers = encode_markers(estimate, world_frame, self.marker_lifetime_ns)
+                out.append((self.markers_topic, stamp, markers))
         slot = estimate.stamp_ns // self._period_ns
         if self._last_slot is None or slot > self._last_slot:
             self._last_slot = slot
@@ -154,9 +171,11 @@ def parameter_vector(estimate: Estimate, prediction_status: int = 0) -> np.ndarr
     model_theta, model_coupling = (
         estimate.model if estimate.model is not None else (estimate.theta_hat, coupling)
     )
+    tracked = (np.full(4, -1.0) if estimate.trust is None
+               else estimate.trust.tracked.astype(float))  # fmt: skip
     return np.concatenate([
         estimate.theta_hat, estimate.gain_l, coupling, ident, [float(prediction_status)],
-        model_theta, model_coupling,
+        model_theta, model_coupling, tracked,
     ])  # fmt: skip
 
 
@@ -173,3 +192,17 @@ def encode_prediction(estimate: Estimate, world_frame: str) -> bytes:
     positions = states[:, [0, 4, 10]]
     orientations = euler_to_quaternion(states[:, 6], states[:, 2], states[:, 8])
     return encode_path(PathSample(estimate.stamp_ns, world_frame, stamps, positions, orientations))
+
+
+def encode_radius(estimate: Estimate) -> bytes:
+    """``cloe/prediction_radius``: per pose of the prediction, its stamp (s), 95 % radius (m)."""
+    stamps, _ = estimate.prediction
+    rows = np.column_stack([np.asarray(stamps) / NS, estimate.prediction_radius])
+    return encode_multi_array([('pose', len(rows)), (RADIUS_COLUMNS, 2)], rows)
+
+
+def encode_markers(estimate: Estimate, world_frame: str, lifetime_ns: int) -> bytes:
+    """``cloe/prediction_markers``: the predicted path and its 95 % spheres for RViz / Foxglove."""
+    _, states = estimate.prediction
+    return encode_prediction_markers(estimate.stamp_ns, world_frame, states[:, [0, 4, 10]],
+                                     estimate.prediction_radius, lifetime_ns)  # fmt: skip

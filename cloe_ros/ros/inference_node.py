@@ -27,7 +27,9 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
+from cloe_ros.core.anticipation import CHANNELS
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.io import messages
@@ -47,6 +49,13 @@ from cloe_ros.ros.common import (
     vehicle_topic,
 )
 
+#: The message class of each output type.
+OUTPUT_TYPES = {
+    messages.ODOMETRY: Odometry,
+    messages.FLOAT64_MULTI_ARRAY: Float64MultiArray,
+    messages.PATH: Path,
+    messages.MARKER_ARRAY: MarkerArray,
+}
 #: Parameters whose change restarts the estimators (the identified model is forgotten).
 RESTARTING = ('algorithm', 'rate')
 #: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
@@ -87,16 +96,9 @@ class InferenceNode(Node):
                 Path, vehicle_topic(v, 'reference_plan'), self._plan_callback(v), in_qos,
                 raw=True,
             )  # fmt: skip
-            enc = self.encoders[v]
-            self.publishers_[enc.state_topic] = self.create_publisher(
-                Odometry, enc.state_topic, out_qos
-            )
-            self.publishers_[enc.parameters_topic] = self.create_publisher(
-                Float64MultiArray, enc.parameters_topic, out_qos
-            )
-            if enc.predictions:
-                self.publishers_[enc.prediction_topic] = self.create_publisher(
-                    Path, enc.prediction_topic, out_qos
+            for topic, msgtype in self.encoders[v].topics.items():
+                self.publishers_[topic] = self.create_publisher(
+                    OUTPUT_TYPES[msgtype], topic, out_qos
                 )
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
@@ -187,7 +189,25 @@ class InferenceNode(Node):
                 'cloe_iv: identify the tilt couplings (the paper fixes them at +-g)')),
             ('ground_altitude', DEFAULTS['ground_altitude'], describe(
                 'cloe_iv: identification pauses while the commanded altitude is at or below '
-                'this, m (below every commanded altitude: never)')),
+                'this, m (below every commanded altitude: never); predictions then do not rely '
+                'on the reference')),
+            ('prediction_intent', DEFAULTS['prediction_intent'], describe(
+                'without a plan, predict where the reference goes from its recent past (else: '
+                'held)', **ro)),
+            ('prediction_guard', DEFAULTS['prediction_guard'], describe(
+                'publish, per horizon, the combination of the closed loop and model-free '
+                'predictors that did best recently (else: the closed loop alone)', **ro)),
+            ('prediction_coverage', DEFAULTS['prediction_coverage'], describe(
+                'probability the published prediction radius is meant to hold', **ro)),
+            ('reference_trust', DEFAULTS['reference_trust'], describe(
+                'check whether the vehicle tracks each reference channel; a channel it does '
+                'not track is replaced by the reference its motion implies (else: always '
+                'trusted)', **ro)),
+            ('reference_trust_ratio', DEFAULTS['reference_trust_ratio'], describe(
+                'a reference channel is not tracked when the model driven by it misses the last '
+                'second by more than this many times constant velocity ...', **ro)),
+            ('reference_trust_floor', DEFAULTS['reference_trust_floor'], describe(
+                '... and by more than this, m (rad for yaw)', **ro)),
             ('diagnostics_period', 1.0, describe(
                 '/diagnostics period, s', float_range=(0.05, 60.0), **ro)),
             ('qos_reliability', 'reliable', describe(
@@ -409,10 +429,21 @@ class InferenceNode(Node):
         note = self._last_prediction_note.get(vehicle, '')
         if engine.started and note and not note.startswith('identified'):
             message += f'; prediction {note}'
+        last = self._last_estimate.get(vehicle)
+        trust = None if last is None else last.trust
+        untracked = [] if trust is None else [
+            (c, why) for c, ok, why in zip(CHANNELS, trust.tracked, trust.reasons) if not ok]
+        if engine.started and untracked:
+            level = max(level, messages.WARN)
+            message += '; reference not tracked: ' + ', '.join(c for c, _ in untracked)
         values = [
             ('algorithm', engine.config.estimator.algorithm),
             ('output_ns', self.output_config.output_ns),
             *self._identification_values(vehicle),
+            ('reference', 'not decided yet' if trust is None else
+             'tracked' if not untracked else
+             'not tracked: ' + '; '.join(f'{c} ({why})' for c, why in untracked)),
+            ('untracked_steps', str(s.untracked_steps)),
             ('rate_hz', f'{engine.config.rate:g}'),
             ('odom_silent_s', '' if silent is None else f'{silent:.1f}'),
             ('steps_per_s', f'{steps_per_s:.1f}'),

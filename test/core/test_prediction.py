@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cloe_ros.core.anticipation import AnticipationConfig
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import generic_prior
@@ -49,9 +50,11 @@ def _sinking_vehicle_predictions(
     """A vehicle hovering at 1 m under a 1 m setpoint that, from t = 10 s, sinks at 0.5 m/s
     while the setpoint stays (as a landing logged late), sampled at 100 Hz on ``steps`` (indices
     of 10 ms). Returns the engine and its predictions by issue stamp."""
+    # the closed loop's own prediction: no guard, no intent, the reference trusted
     engine = VehicleEngine(EngineConfig(
         estimator=EstimatorConfig('cloe_iv'),
-        prediction=PredictionConfig(disturbance_time=disturbance_time)))  # fmt: skip
+        prediction=PredictionConfig(disturbance_time=disturbance_time),
+        anticipation=AnticipationConfig(intent=False, guard=False, trust=False)))  # fmt: skip
     out = {}
     for k in steps:
         t = k / 100

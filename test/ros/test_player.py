@@ -35,12 +35,10 @@ from cloe_ros.core.samples import OdometrySample
 from cloe_ros.io.messages import (
     ODOMETRY,
     TYPESTORE,
-    Header,
     decode_clock,
     decode_odometry,
     decode_pose_stamped,
     encode_odometry,
-    ns_to_time,
 )
 from cloe_ros.io.reader import BagReader
 from cloe_ros.ros import player_node
@@ -50,7 +48,7 @@ from cloe_ros.ros.player_node import PlayerNode, playback_qos
 pytestmark = pytest.mark.ros
 
 B2 = Path('/work/shared/data/flights/nanobench_B2_circle_medium_rep1')
-TEMPERATURE = 'sensor_msgs/msg/Temperature'  # its Python package is not installed here
+PLANE = 'shape_msgs/msg/Plane'  # its Python package is not installed here
 needs_b2 = pytest.mark.skipif(not B2.is_dir(), reason=f'{B2} not available')
 
 
@@ -249,18 +247,14 @@ def write_small_bag(path: Path, topics: dict[str, str], n: int = 50, qos_profile
                                        np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3), np.zeros(3))
                     )  # fmt: skip
                 else:
-                    msg = TYPESTORE.types[TEMPERATURE](
-                        header=Header(stamp=ns_to_time(stamp_ns), frame_id='imu'),
-                        temperature=20.0 + i,
-                        variance=0.0,
-                    )
-                    raw = TYPESTORE.serialize_cdr(msg, TEMPERATURE)
+                    msg = TYPESTORE.types[PLANE](coef=np.array([0.0, 0.0, 1.0, -float(i)]))
+                    raw = TYPESTORE.serialize_cdr(msg, PLANE)
                 writer.write(conns[topic], stamp_ns, raw)
 
 
 def test_skips_types_without_python_package(ros, tmp_path):
     bag = tmp_path / 'bag'
-    write_small_bag(bag, {'/odom': ODOMETRY, '/temperature': TEMPERATURE})
+    write_small_bag(bag, {'/odom': ODOMETRY, '/plane': PLANE})
     arrivals = Arrivals(ros.node, {'/odom': Odometry})
     player = NodeProcess(
         'bag_player',
@@ -272,7 +266,7 @@ def test_skips_types_without_python_package(ros, tmp_path):
     out = output(player)
     assert status == 0, out
     assert (
-        'skipping /temperature: the Python package of sensor_msgs/msg/Temperature is not '
+        'skipping /plane: the Python package of shape_msgs/msg/Plane is not '
         'installed' in out
     )
     assert 'done: 50 messages' in out
@@ -400,8 +394,8 @@ def test_refuses_to_start(tmp_path, params, expected):
         params['bag'] = str(tmp_path / 'small')
         write_small_bag(tmp_path / 'small', {'/odom': ODOMETRY}, n=50)  # 0.49 s
     elif params.get('bag') == 'UNKNOWN_TYPES':
-        params['bag'] = str(tmp_path / 'temperature')
-        write_small_bag(tmp_path / 'temperature', {'/temperature': TEMPERATURE}, n=5)
+        params['bag'] = str(tmp_path / 'plane')
+        write_small_bag(tmp_path / 'plane', {'/plane': PLANE}, n=5)
     elif str(B2) in params.values() and not B2.is_dir():
         pytest.skip(f'{B2} not available')
     player = NodeProcess('bag_player', params, reserve_domain_id(), tmp_path)

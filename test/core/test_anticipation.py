@@ -1,0 +1,166 @@
+"""The parts of anticipation with a known answer: intent fits, the guard's weights, the radius's
+coverage, the virtual reference, the physical envelope."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cloe_ros.core.anticipation import (
+    AnticipationConfig,
+    CoverageRadius,
+    Ensemble,
+    VirtualReference,
+    clip_to_envelope,
+    harmonic_fit,
+    last_jump,
+    linear_fit,
+    simplex_weights,
+    turn_positions,
+)
+from cloe_ros.core.model import BLOCKS, system_matrices
+from cloe_ros.errors import ConfigError
+
+
+def test_a_circle_is_extrapolated_by_the_shared_frequency_fit():
+    w = 2 * np.pi / 7.0
+    t = np.linspace(-3.0, 0.0, 61)
+    circle = np.column_stack([1.5 + np.cos(w * t), -0.5 + np.sin(w * t)])
+    ahead = np.linspace(0.0, 5.0, 11)
+    out = harmonic_fit(t, circle, ahead, 2 * np.pi / np.geomspace(1.5, 30.0, 400), joint=True)
+    truth = np.column_stack([1.5 + np.cos(w * ahead), -0.5 + np.sin(w * ahead)])
+    np.testing.assert_allclose(out, truth, atol=0.02)
+
+
+def test_a_line_is_extrapolated_by_the_linear_fit():
+    t = np.linspace(-1.0, 0.0, 21)
+    y = np.column_stack([0.3 + 0.7 * t, -2.0 * t])
+    np.testing.assert_allclose(linear_fit(t, y, np.array([1.0, 2.0])), [[1.0, -2.0], [1.7, -4.0]])
+
+
+def test_the_fits_start_after_the_last_jump_of_the_reference():
+    r = np.zeros((50, 3))
+    r[:, 0] = 0.01 * np.arange(50)
+    assert last_jump(r) == 0
+    r[30:, 1] += 1.0  # a 1 m step of the setpoint
+    assert last_jump(r) == 30
+
+
+def test_minimum_variance_weights_of_independent_candidates():
+    # independent errors of variance 1 and 4: w = (4, 1) / 5
+    s = np.array([[[1.0, 0.0], [0.0, 4.0]]])
+    np.testing.assert_allclose(simplex_weights(s, np.ones(2, bool), shrink=0.0), [[0.8, 0.2]])
+    # a candidate not allowed gets nothing
+    np.testing.assert_allclose(simplex_weights(s, np.array([False, True])), [[0.0, 1.0]])
+
+
+def test_weights_stay_on_the_simplex_when_the_unconstrained_optimum_is_negative():
+    # strongly correlated candidates, the second worse: the unconstrained solution shorts it
+    s = np.array([[[1.0, 1.9], [1.9, 4.0]]])
+    w = simplex_weights(s, np.ones(2, bool), shrink=0.0)
+    assert np.all(w >= 0) and np.isclose(w.sum(), 1.0)
+    np.testing.assert_allclose(w, [[1.0, 0.0]])
+
+
+def test_the_ensemble_learns_which_candidate_is_right_at_each_horizon():
+    """Candidate A is exact up to 1 s and then off by 1 m; B is off by 0.3 m everywhere."""
+    offsets = np.array([0.5, 1.0, 2.0, 5.0])
+    ens = Ensemble(('a', 'b'), offsets, 1, score_time=5.0, period=0.2, max_pending=40)
+    rng = np.random.default_rng(0)
+    for i in range(200):
+        t = 0.2 * i
+        a = np.where(offsets <= 1.0, 0.0, 1.0)[:, None] + 0.01 * rng.normal(size=(4, 1))
+        b = np.full((4, 1), 0.3) * rng.choice([-1, 1], size=(4, 1))
+        ens.add(t, np.stack([a, b]))
+        ens.score(t - 0.2, t, lambda times: np.zeros((len(times), 1)))
+    w = ens.weights()
+    assert w[0, 0] > 0.95 and w[1, 0] > 0.95  # A at 0.5 s and 1 s
+    assert w[2, 1] > 0.85 and w[3, 1] > 0.85  # B at 2 s and 5 s
+
+
+def test_unscored_horizons_take_the_growth_of_the_scored_ones():
+    """Only the 0.5 s and 1 s horizons have scores: A's error doubles from 0.5 to 1 s (it
+    extrapolates), B's stays; at 5 s the guard must already prefer B."""
+    offsets = np.array([0.5, 1.0, 2.0, 5.0])
+    ens = Ensemble(('a', 'b'), offsets, 1, score_time=5.0, period=0.2, max_pending=40)
+    for i in range(9):  # 1.6 s: the 2 s and 5 s horizons have no score yet
+        t = 0.2 * i
+        a = np.array([[0.1], [0.2], [0.4], [1.0]]) * (-1) ** i
+        b = np.full((4, 1), 0.25) * (-1) ** (i + 1)
+        ens.add(t, np.stack([a, b]))
+        ens.score(t - 0.2, t, lambda times: np.zeros((len(times), 1)))
+    assert ens.scored[:2].all() and not ens.scored[2:].any()
+    w = ens.weights()
+    assert w[0, 0] > 0.5 and w[3, 1] > 0.8, w
+
+
+@pytest.mark.parametrize('scale', [0.01, 1.0])
+def test_the_radius_covers_95_percent_of_errors_of_any_scale(scale):
+    offsets = np.array([0.5, 1.0])
+    rad = CoverageRadius(offsets, coverage=0.95)
+    rng = np.random.default_rng(1)
+    inside, n = 0, 0
+    scales = np.ones(2)
+    for i in range(3000):
+        r = rad.radii(scales)
+        e = scale * np.abs(rng.standard_t(3, size=2)) * np.array([1.0, 2.0])  # heavy tails
+        if i >= 200:
+            inside += np.count_nonzero(e <= r)
+            n += 2
+        rad.update(np.arange(2), e, r, scales)
+    assert 0.93 <= inside / n <= 0.97, inside / n
+
+
+def test_the_radius_of_a_later_pose_is_never_smaller():
+    rad = CoverageRadius(np.array([0.5, 1.0, 2.0]), coverage=0.95)
+    for _ in range(20):
+        rad.update(np.arange(3), np.array([0.3, 0.1, 0.2]), np.zeros(3), np.ones(3))
+    r = rad.radii(np.ones(3))
+    assert np.all(np.diff(r) >= 0) and np.all(np.isfinite(r)) and np.all(r > 0)
+
+
+def test_the_virtual_reference_makes_a_constant_velocity_motion_unforced():
+    """Under its own virtual reference, a block moving at constant velocity has (to first order)
+    no acceleration: the reference is where the closed loop's ramp response puts it."""
+    theta = np.array([-8.0, -6.0, -40.0, -9.0, 8.0, -8.0, -6.0, -40.0, -9.0, 8.0,
+                      -20.0, -6.0, 20.0, -30.0, -8.0, 30.0])  # fmt: skip
+    coupling = np.array([9.81, -9.81])
+    a, b = system_matrices(theta, coupling)
+    virtual = VirtualReference()
+    virtual.update(a, b, BLOCKS)
+    # z block (2nd order): z'' = -30 z - 8 z' + 30 r: gain 1, delay 8/30 s
+    assert virtual.gain[3] == pytest.approx(1.0)
+    assert virtual.delay[3] == pytest.approx(8.0 / 30.0)
+    zeta = np.zeros(12)
+    zeta[10], zeta[11] = 1.0, 0.5
+    r = virtual.of(zeta)
+    z_ddot = a[11] @ zeta + b[11] @ r
+    assert z_ddot == pytest.approx(0.0, abs=1e-12)
+
+
+def test_predictions_are_kept_within_reach_of_a_quadrotor():
+    p0, v0 = np.zeros(3), np.array([1.0, 0.0, 0.0])
+    offsets = np.array([0.5, 1.0, 5.0])
+    far = np.array([[1e4, 0.0, 0.0], [0.5, 0.0, 0.0], [7e5, 2e5, 0.0]])
+    out = clip_to_envelope(p0, v0, offsets, far, max_speed=150.0, max_acceleration=100.0)
+    reach = np.minimum(1.0 * offsets + 50.0 * offsets**2, 150.0 * offsets)
+    assert np.all(np.linalg.norm(out - p0, axis=1) <= reach + 1e-9)
+    np.testing.assert_array_equal(out[1], far[1])  # inside: unchanged
+
+
+def test_a_constant_turn_is_followed_by_the_turn_candidate():
+    w, speed = 0.5, 1.0  # rad/s, m/s, counter-clockwise circle of radius 2 m
+    zeta = np.zeros(12)
+    zeta[1] = speed  # moving along +x at the bottom of the circle centred on (0, 2)
+    zeta[2] = speed * w / 9.81  # theta: x_ddot = g theta = 0
+    zeta[6] = -(speed * w) / 9.81  # phi: y_ddot = -g phi = v w (towards the centre)
+    zeta[2] = 0.0
+    out = turn_positions(zeta, np.array([9.81, -9.81]), np.array([np.pi / w]))
+    np.testing.assert_allclose(out[0], [0.0, 4.0, 0.0], atol=1e-9)  # half a turn: the top
+
+
+def test_invalid_settings_are_refused_by_name():
+    with pytest.raises(ConfigError, match='coverage'):
+        AnticipationConfig(coverage=1.5)
+    with pytest.raises(ConfigError, match='trust_ratio'):
+        AnticipationConfig(trust_ratio=float('nan'))

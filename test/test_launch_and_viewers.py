@@ -16,7 +16,7 @@
   (setup.py data_files; a regular ``pip install .`` puts them under <prefix>/share/cloe_ros).
 
 Pending, until the nodes have them (named here so that they show in the test's output):
-:data:`PENDING_PARAMETERS` and :data:`PENDING_TOPICS`.
+:data:`PENDING_PARAMETERS`.
 """
 
 from __future__ import annotations
@@ -43,9 +43,6 @@ SESSIONS = {
 #: Parameters a launch file sets that a node does not declare yet: cloe_inference's
 #: ``discover`` (discovery of vehicles, being added to the inference node).
 PENDING_PARAMETERS = {('cloe_inference', 'discover')}
-#: Topics a viewer shows that no node publishes yet: the spheres of the 95 % prediction radius
-#: (``<ns>/<output_ns>/prediction_markers``, visualization_msgs/MarkerArray).
-PENDING_TOPICS = re.compile(r'.*/prediction_markers$')
 
 NODE_KEYS = {'pkg', 'exec', 'name', 'namespace', 'output', 'param', 'if', 'unless'}
 SUBSTITUTION = re.compile(r'\$\((\w[\w-]*)\s*([^)]*)\)')
@@ -382,12 +379,9 @@ def test_viewers_show_only_what_the_nodes_have(launch, evaluations):
     for relative in SESSIONS[launch]:
         path = REPO / relative
         topics, named = (rviz_names if path.suffix == '.rviz' else foxglove_names)(path)
-        missing = {t for t in topics - have if not PENDING_TOPICS.match(t)}
+        missing = topics - have
         assert not missing, f'{relative} shows topics no node of {launch} has: {missing}'
         assert named <= frames, f'{relative}: frames {named - frames} (the package: {frames})'
-        pending = sorted(t for t in topics - have if PENDING_TOPICS.match(t))
-        if pending:
-            print(f'{relative}: topics no node publishes yet (pending): {pending}')
 
 
 def test_viewer_files_are_what_the_script_writes():

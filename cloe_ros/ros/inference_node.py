@@ -205,9 +205,11 @@ class InferenceNode(Node):
                 'trusted)', **ro)),
             ('reference_trust_ratio', DEFAULTS['reference_trust_ratio'], describe(
                 'a reference channel is not tracked when the model driven by it misses the last '
-                'second by more than this many times constant velocity ...', **ro)),
+                'second by more than this many times constant velocity (and by more than '
+                'reference_trust_floor)', **ro)),
             ('reference_trust_floor', DEFAULTS['reference_trust_floor'], describe(
-                '... and by more than this, m (rad for yaw)', **ro)),
+                'the least miss of the model driven by a reference channel over the last second '
+                'that makes it not tracked, m (rad for yaw)', **ro)),
             ('diagnostics_period', 1.0, describe(
                 '/diagnostics period, s', float_range=(0.05, 60.0), **ro)),
             ('qos_reliability', 'reliable', describe(

@@ -18,6 +18,7 @@ import pytest
 from cloe_ros.cli.evaluate import format_prediction
 from cloe_ros.cli.main import build_parser, main
 from cloe_ros.core.evaluation import PredictionScore
+from cloe_ros.io.writer import BagWriter
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / 'bags'
@@ -215,3 +216,56 @@ def test_an_empty_prediction_table_says_why():
     withheld = SimpleNamespace(pred_t=np.zeros(0), withheld=12)
     text = format_prediction(_empty_score(5.0, 5.0), 'whole run', withheld)
     assert 'every prediction of the run (12) was withheld: the identified model had an ' in text
+
+
+def test_evaluate_corpus_scores_every_flight_beside_the_baselines(tmp_path, capsys):
+    """Two simulated flights in a folder (one bag holding two vehicles), and a bag without a
+    vehicle: each flight gets its row, the medians and the pooled coverage are printed and
+    written, and the bag that cannot be scored is named (exit status 1)."""
+    from bag_fixtures import simulate, write_sim_bag
+
+    corpus = tmp_path / 'corpus'
+    corpus.mkdir()
+    result = simulate(duration=15.0)
+    write_sim_bag(corpus / 'one', result)
+    write_sim_bag(corpus / 'nested' / 'two', result, namespaces=('/uav1', '/uav2'))
+    (corpus / 'notes.txt').write_text('not a bag')
+    out = tmp_path / 'corpus.json'
+    status = main(['evaluate', 'corpus', str(corpus), '--jobs', '2', '-q', '--json', str(out)])
+    printed = capsys.readouterr()
+    assert status == 0, printed.err
+    data = json.loads(out.read_text())
+    names = [f['name'] for f in data['flights']]
+    assert names == ['two/uav1', 'two/uav2', 'one']  # bags in path order: nested/two, one
+    for flight in data['flights']:
+        rmse = flight['rmse_m']
+        assert set(rmse) == {'model', 'constant_velocity', 'hold_position', 'reference_held',
+                             'reference_lag'}  # fmt: skip
+        assert all(np.all(np.isfinite(v)) and len(v) == 4 for v in rmse.values())
+        best = np.minimum(rmse['constant_velocity'], rmse['hold_position'])
+        assert flight['worst_ratio'] == pytest.approx(np.max(np.array(rmse['model']) / best))
+        assert all(0.0 <= c <= 1.0 for c in flight['coverage'])
+    # the same vehicle data three times: the same scores (whichever bag or process)
+    assert data['flights'][0]['rmse_m'] == data['flights'][1]['rmse_m'] == \
+        data['flights'][2]['rmse_m']
+    median = np.median([f['rmse_m']['model'] for f in data['flights']], axis=0)
+    np.testing.assert_allclose(data['median_rmse_m']['model'], median)
+    for name in names:
+        assert name in printed.out
+    assert 'median over 3 flights' in printed.out and 'pooled' in printed.out
+    # a folder holding a bag without any vehicle: that bag is named, the others still scored
+    empty = corpus / 'empty'
+    with BagWriter(empty) as writer:
+        writer.add_topic('/chatter', 'std_msgs/msg/String')
+    status = main(['evaluate', 'corpus', str(corpus), '-q', '--jobs', '1'])
+    printed = capsys.readouterr()
+    assert status == 1
+    assert 'ERROR:' in printed.err and 'empty' in printed.err
+    assert 'median over 3 flights' in printed.out
+
+
+def test_evaluate_corpus_refuses_paths_without_bags(tmp_path, capsys):
+    assert main(['evaluate', 'corpus', str(tmp_path)]) == 1
+    assert 'no bag' in capsys.readouterr().err
+    assert main(['evaluate', 'corpus', str(tmp_path / 'missing')]) == 1
+    assert 'does not exist' in capsys.readouterr().err

@@ -36,9 +36,8 @@ from cloe_ros.io.writer import BagWriter
 NS = 1_000_000_000
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / 'bags'
-FLIGHTS = Path('/work/shared/data/flights')
-B2 = FLIGHTS / 'nanobench_B2_circle_medium_rep1'
-B3 = FLIGHTS / 'nanobench_B3_figure8_medium_rep1'
+from corpus import B2, B3  # noqa: E402
+
 STEP_NS = NS // 100  # the default estimator rate, 100 Hz
 NO_VEHICLE = (
     'no vehicle to infer: each needs <ns>/odom (nav_msgs/msg/Odometry) and <ns>/reference '
@@ -81,6 +80,10 @@ def topic_counts(bag: Path) -> dict[str, int]:
         summary = make_reader(fh).get_summary()
     channels = summary.channels
     return {channels[cid].topic: n for cid, n in summary.statistics.channel_message_counts.items()}
+
+
+#: visualization_msgs/Marker types (the independent decoder carries no constants).
+SPHERE, LINE_STRIP = 2, 4
 
 
 @functools.cache
@@ -354,7 +357,9 @@ def test_outputs_of_the_contract(inferred):
     inputs = topic_counts(source)
     copied = {t: n for t, n in inputs.items()
               if t in ('/odom', '/reference', '/ground_truth', '/true_parameters')}  # fmt: skip
-    assert set(counts) == {'/cloe/state', '/cloe/parameters', '/cloe/prediction'} | set(copied)
+    outputs = {'/cloe/state', '/cloe/parameters', '/cloe/prediction', '/cloe/prediction_radius',
+               '/cloe/prediction_markers'}  # fmt: skip
+    assert set(counts) == outputs | set(copied)
     for topic, n in copied.items():
         assert counts[topic] == n, topic
     assert f'wrote {out}: {sum(counts.values())} messages;' in stdout
@@ -417,6 +422,28 @@ def test_outputs_of_the_contract(inferred):
         poses = np.array([stamp(p.header) for p in path.poses])
         assert len(poses) and poses[0] > issued and np.all(np.diff(poses) > 0)
         assert poses[-1] - issued <= DEFAULTS['prediction_horizon'] * NS + 1
+    # with every prediction, its radii (pose stamp, radius) and its markers, at the same stamp
+    radii = decoded(out, '/cloe/prediction_radius')
+    markers = decoded(out, '/cloe/prediction_markers')
+    assert len(radii) == len(markers) == len(predictions)
+    for path, radius, drawn in zip(predictions, radii, markers):
+        dims = [(d.label, d.size) for d in radius.layout.dim]
+        assert dims == [('pose', len(path.poses)), ('stamp_s,radius_m', 2)]
+        rows = np.asarray(radius.data).reshape(-1, 2)
+        np.testing.assert_allclose(rows[:, 0], [stamp(p.header) / NS for p in path.poses],
+                                   rtol=0, atol=1e-6)  # fmt: skip
+        assert np.all(np.isfinite(rows[:, 1])) and np.all(rows[:, 1] > 0)
+        line, *spheres = drawn.markers
+        assert line.type == LINE_STRIP and len(line.points) == len(path.poses)
+        assert {stamp(m.header) for m in drawn.markers} == {stamp(path.header)}
+        assert spheres and all(sphere.type == SPHERE for sphere in spheres)
+        # sphere i sits on pose 5 i (every fifth), its diameter twice that pose's radius
+        for sphere in spheres:
+            k = 5 * sphere.id - 1
+            pose = path.poses[k].pose.position
+            at = [sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z]
+            np.testing.assert_allclose(at, [pose.x, pose.y, pose.z], rtol=0, atol=1e-12)
+            assert sphere.scale.x == pytest.approx(2.0 * rows[k, 1])
 
 
 @pytest.mark.slow

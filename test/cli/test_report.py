@@ -38,8 +38,8 @@ from cloe_ros.io.reader import BagReader
 from cloe_ros.io.writer import BagWriter
 
 NS = 1_000_000_000
-FLIGHTS = Path('/work/shared/data/flights')
-B2 = FLIGHTS / 'nanobench_B2_circle_medium_rep1'
+from corpus import B2  # noqa: E402
+
 PNG = b'\x89PNG\r\n\x1a\n'
 
 

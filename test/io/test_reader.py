@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from corpus import FLIGHTS
 from mcap.reader import make_reader
 from rosbags.interfaces import (
     Qos,
@@ -38,7 +39,6 @@ from cloe_ros.io.messages import (
 from cloe_ros.io.reader import BagError, BagReader, TopicInfo, qos_profiles
 from cloe_ros.io.writer import BagWriter
 
-FLIGHTS = Path('/work/shared/data/flights')
 REAL = {
     'nanobench_B2_circle_medium_rep1': {'/odom': 2725, '/reference': 2527},
     'nanobench_B3_figure8_medium_rep1': {'/odom': 2476, '/reference': 2275},

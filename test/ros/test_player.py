@@ -47,7 +47,8 @@ from cloe_ros.ros.player_node import PlayerNode, playback_qos
 
 pytestmark = pytest.mark.ros
 
-B2 = Path('/work/shared/data/flights/nanobench_B2_circle_medium_rep1')
+from corpus import B2  # noqa: E402
+
 PLANE = 'shape_msgs/msg/Plane'  # its Python package is not installed here
 needs_b2 = pytest.mark.skipif(not B2.is_dir(), reason=f'{B2} not available')
 

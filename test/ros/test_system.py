@@ -416,16 +416,14 @@ def test_sim_inference_recorder(system) -> None:
 
 def test_use_sim_time(system) -> None:
     """The simulator publishes /clock; inference and recorder run on it. Outputs still come, and
-    the recorder's log times follow the simulation clock, which runs RTF = 2 times faster than the
-    wall clock: log time - header stamp stays above -50 ms (a message is logged once the clock
-    reached about its stamp: /clock ticks every 10 ms, just before the odometry of that time; on
-    the wall clock it would fall to about -DURATION (1 - 1 / RTF) = -4 s by the end) and its
-    median is within 0.1 s of 0 (-2 s on the wall clock).
-
-    Measured (6 runs): log time - stamp in [-0.01, 0.47] s for /odom and [0, 1.47] s for
-    /cloe/state (the recorder or the inference node momentarily behind: the log time is the
-    recorder's clock when its callback runs, and rclpy's /clock subscription keeps only the latest
-    tick), medians 0.00-0.01 s."""
+    the recorder's log times are simulation times: the simulator ticks /clock at each odometry
+    stamp (every 10 ms of simulated time), and a node on ``use_sim_time`` reads the latest tick, so
+    every log time lies on that 10 ms grid, which a wall-clock time would hit with probability
+    about 1e-7 per message. How far the log time trails the stamp depends on how busy the machine
+    is (measured idle: medians 0.00-0.01 s; loaded: up to 0.6 s); that is a speed, reported by the
+    benchmark, not tested here. What does not depend on speed: a message is logged no earlier than
+    about its own stamp (the tick before it arrives first), never seconds before it as the wall
+    clock of a simulator running at RTF = 2 would give."""
     topics = ['/odom', '/reference', '/ground_truth', '/cloe/state', '/cloe/parameters']
     fly(system, 2, {'publish_clock': True},
         {'cloe_inference': {'use_sim_time': True}}, topics,
@@ -436,13 +434,16 @@ def test_use_sim_time(system) -> None:
     assert len(bag['/cloe/parameters']) == len(
         slot_starts(stamps_of(bag['/cloe/state']), NS // 10)
     )
+    origin = stamps_of(bag['/odom'])[0]
+    tick = NS // 100
     for topic in ('/odom', '/cloe/state'):
         log = np.array([t for t, _, _ in bag[topic]], dtype=np.int64)
         lag = (log - np.array(stamps_of(bag[topic]), dtype=np.int64)) / NS
         print(f'{topic}: log time - stamp in [{lag.min():.3f}, {lag.max():.3f}] s, median '
               f'{np.median(lag):.3f} s')  # fmt: skip
-        assert lag.min() >= -0.05
-        assert abs(np.median(lag)) <= 0.1
+        off_grid = np.count_nonzero((log - origin) % tick)
+        assert off_grid == 0, f'{off_grid} of {len(log)} {topic} log times are not /clock ticks'
+        assert lag.min() >= -1.0
 
 
 def test_two_vehicles(system) -> None:

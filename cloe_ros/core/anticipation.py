@@ -44,7 +44,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cloe_ros.core.model import BLOCK_SLICES, BLOCKS, discretise, system_matrices
+from cloe_ros.core.model import (
+    BLOCK_SLICES,
+    BLOCKS,
+    QUADROTOR_MAX_ACCELERATION,
+    QUADROTOR_MAX_SPEED,
+    discretise,
+    system_matrices,
+)
 from cloe_ros.errors import ConfigError
 
 #: Reference channels, in the order of ``r = [x_d, y_d, psi_d, z_d]``, and the state index of the
@@ -118,8 +125,8 @@ class AnticipationConfig:
     trust_ratio: float = 3.0
     trust_floor: float = 0.3
     ground_altitude: float = 0.05
-    max_speed: float = 150.0
-    max_acceleration: float = 100.0
+    max_speed: float = QUADROTOR_MAX_SPEED
+    max_acceleration: float = QUADROTOR_MAX_ACCELERATION
 
     def __post_init__(self) -> None:
         for name, low, high in (
@@ -864,10 +871,12 @@ class Anticipator:
         return path, candidates
 
     def combine(self, t: float, model_positions: np.ndarray, measured: np.ndarray,
-                coupling: np.ndarray) -> Anticipation:  # fmt: skip
+                coupling: np.ndarray,
+                center: tuple[np.ndarray, np.ndarray] | None = None) -> Anticipation:  # fmt: skip
         """The published prediction from ``t``: the candidates (the closed loop's
         ``model_positions`` (K, 3) and the reference-free ones from the ``measured`` state)
-        combined by the guard, within the physical envelope, with the radius."""
+        combined by the guard, within the physical envelope about ``center`` (the estimated
+        position and velocity; default: the measured ones), with the radius."""
         cfg = self.config
         hist = self.history
         paths = np.empty((len(CANDIDATES) + 1, len(self.poses), 3))
@@ -890,8 +899,9 @@ class Anticipator:
             w = np.zeros((len(self.poses), len(CANDIDATES)))
             w[:, 0 if allowed[0] else CANDIDATES.index('hold')] = 1.0
         published = np.einsum('km,mkd->kd', w, paths[:-1])
-        published = clip_to_envelope(measured[POSITION], measured[VELOCITY], self.poses,
-                                     published, cfg.max_speed, cfg.max_acceleration)  # fmt: skip
+        p0, v0 = (measured[POSITION], measured[VELOCITY]) if center is None else center
+        published = clip_to_envelope(p0, v0, self.poses, published,
+                                     cfg.max_speed, cfg.max_acceleration)  # fmt: skip
         paths[-1] = published
         # the scale of the errors: how much the candidates disagree, plus a floor
         gap = paths[:-1][allowed] - published

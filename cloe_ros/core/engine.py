@@ -60,17 +60,29 @@ from cloe_ros.core.kinematics import (
     roll_pitch_one,
     unwrap_near,
 )
-from cloe_ros.core.model import unstable_blocks
+from cloe_ros.core.model import QUADROTOR_MAX_RATE, QUADROTOR_MAX_SPEED, unstable_blocks
 from cloe_ros.core.prediction import PredictionConfig, Predictor, plan_references
-from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
+from cloe_ros.core.samples import MAX_STAMP_NS, OdometrySample, PathSample, PoseSample
 
 NS = 1_000_000_000
 
 #: Bounds of plausible inputs, generous for any quadrotor in a local world frame; beyond them an
 #: input is rejected (such values overflow the estimator's statistics, or leave its model).
 MAX_POSITION = 1e5  # m, each coordinate (odometry, reference, plan)
-MAX_SPEED = 1e3  # m/s, each body velocity component
-MAX_RATE = 1e3  # rad/s, each body rate
+MAX_SPEED = QUADROTOR_MAX_SPEED  # m/s, each body velocity component
+MAX_RATE = QUADROTOR_MAX_RATE  # rad/s, each body rate
+#: A sample farther from the previous one than this plus ``MAX_SPEED`` times the time between
+#: them is held aside like a jump in time: the next sample decides (a glitch, or the frame moved).
+POSITION_JUMP = 1.0  # m
+#: An odometry gap longer than this many typical intervals (and ``MIN_HELD_GAP``), but shorter
+#: than ``max_gap``, is held aside too, so a single glitched stamp ahead costs one sample.
+HELD_INTERVALS = 10
+MIN_HELD_GAP = 50_000_000  # ns
+#: Longest accepted plan, poses (a minute at 100 Hz, and more).
+MAX_PLAN_POSES = 10_000
+#: Inputs in one other frame, in a row, after which a frame learnt from the first input is taken
+#: to have been an outlier and is learnt again.
+FRAME_RELEARN = 20
 MAX_TILT = math.radians(80.0)  # roll and pitch: the model linearises about hover in Euler angles
 #: Reference and plan quaternions are normalised before their yaw is taken, but for those of unit
 #: norm to round-off: dividing by 1 - 1e-16 would only add round-off to the yaw.
@@ -189,6 +201,8 @@ class VehicleStats:
     rejected: Counter = field(default_factory=Counter)
     steps: int = 0
     time_jumps: int = 0
+    position_jumps: int = 0
+    frames_relearnt: int = 0
     resets: int = 0
     diverged: int = 0
     plans_received: int = 0
@@ -224,6 +238,13 @@ def seconds(stamp_ns: int) -> str:
     """A stamp in seconds, every nanosecond shown (``1700000001.230000000 s``)."""
     sec, nsec = divmod(int(stamp_ns), NS)
     return f'{sec}.{nsec:09d} s'
+
+
+def _near(position: np.ndarray, previous: np.ndarray, dt_ns: int) -> bool:
+    """Whether a quadrotor can be at ``position`` ``dt_ns`` after ``previous``."""
+    reach = POSITION_JUMP + MAX_SPEED * abs(dt_ns) / NS
+    d = np.asarray(position, float) - previous
+    return float(d @ d) <= reach * reach
 
 
 #: Numerical failures of a step (the estimator restarts, counted as ``diverged``).
@@ -271,6 +292,11 @@ class VehicleEngine:
             maxlen=self._window * self._every + 1
         )
         self._held_odom: OdometrySample | None = None  # a jump in time, until the next one
+        self._held_kind = ''  # why it is held: 'time jump', 'gap' or 'position jump'
+        self._interval_ns: float | None = None  # typical odometry interval
+        self._ref_interval_ns: float | None = None  # typical reference interval
+        self._frame_learnt = False  # the frame was learnt from an input (not configured)
+        self._other_frames: list[str] = []  # frames of the inputs refused in a row since
         self._held_refs: deque[tuple[int, np.ndarray]] = deque()  # references off the timeline
         self._held_refs_backward = False  # held for being behind it (else: ahead of it)
         self._rejections: deque[Rejection] = deque(maxlen=100)  # for take_rejections
@@ -289,13 +315,43 @@ class VehicleEngine:
         return self._frame
 
     def _check_frame(self, frame_id: str) -> str | None:
-        """What is wrong with ``frame_id`` (odometry and reference set the frame if unknown)."""
+        """What is wrong with ``frame_id`` (odometry and reference set the frame if unknown).
+
+        A frame learnt from the first input (none configured) is learnt again when the next
+        ``FRAME_RELEARN`` inputs all come in one other frame: the first input was the outlier.
+        Everything accepted in the old frame is then dropped and the estimator restarts."""
         if self._frame is None:
-            self._frame = frame_id
+            self._frame, self._frame_learnt = frame_id, True
+            self._other_frames.clear()
             return None
-        if frame_id != self._frame:
-            return f'received {frame_id!r}, expected {self._frame!r}'
-        return None
+        if frame_id == self._frame:
+            self._other_frames.clear()
+            return None
+        if self._frame_learnt:
+            others = self._other_frames
+            if others and others[-1] != frame_id:
+                others.clear()
+            others.append(frame_id)
+            if len(others) >= FRAME_RELEARN:
+                self._relearn_frame(frame_id)
+                return None
+        return f'received {frame_id!r}, expected {self._frame!r}'
+
+    def _relearn_frame(self, frame_id: str) -> None:
+        old = self._frame
+        self._frame = frame_id
+        self._other_frames.clear()
+        self.stats.frames_relearnt += 1
+        self._stop_estimator()
+        self._odom.clear()
+        self._refs.clear()
+        self._plan = None
+        self._held_odom = None
+        self._held_refs.clear()
+        self._model = None
+        self._anchor_ns, self._anchor_exact = None, False
+        self._rejections.append(Rejection(
+            'world frame learnt again', f'{old!r} was an outlier: the inputs are in {frame_id!r}'))
 
     def _reject(self, reason: str, detail: str = '') -> Rejection:
         rejection = Rejection(reason, detail)
@@ -346,7 +402,8 @@ class VehicleEngine:
 
     def add_odometry(self, sample: OdometrySample) -> Rejection | None:
         """Accept an odometry sample; returns the reason if it was rejected. A sample that jumps
-        in time is held aside (None is returned) until the next one decides (module docstring)."""
+        in time or in space is held aside (None is returned) until the next one decides (module
+        docstring)."""
         self.stats.odom_received += 1
         problem = self._odometry_problem(sample)
         if problem:
@@ -354,27 +411,51 @@ class VehicleEngine:
         stamp, gap = sample.stamp_ns, self.config.max_gap * NS
         held = self._held_odom
         if held is not None:
-            if 0 < stamp - held.stamp_ns <= gap:  # the new timeline goes on: a genuine jump
+            dt = stamp - held.stamp_ns
+            if 0 < dt <= gap and _near(sample.position, held.position, dt):
+                # the new timeline (or the new place) goes on from the held sample: genuine
                 self._held_odom = None
-                self._time_jump(held.stamp_ns, backward=held.stamp_ns < self._odom[-1][0])
+                if self._held_kind == 'time jump':
+                    self._time_jump(held.stamp_ns, backward=held.stamp_ns < self._odom[-1][0])
+                elif self._held_kind == 'position jump':
+                    self._discontinuity(held.stamp_ns)
                 self._accept_odometry(held)
                 self._accept_odometry(sample)
                 return None
             if stamp == held.stamp_ns:
                 return self._reject('duplicate stamp', seconds(stamp))
             self._held_odom = None
-            self._reject_outlier(held.stamp_ns, 'stamp outlier', NOT_CONTINUED)
-        last = self._odom[-1][0] if self._odom else None
-        if last is not None and abs(stamp - last) > gap:
-            self._held_odom = sample  # a time jump, or a glitch: the next sample tells
-            return None
-        if last is not None and stamp == last:
-            return self._reject('duplicate stamp', seconds(stamp))
-        if last is not None and stamp < last:
-            return self._reject(
-                'out-of-order stamp', f'{seconds(stamp)}, {(last - stamp) / NS:.6g} s before the '
-                'previous one')  # fmt: skip
+            reason = 'position outlier' if self._held_kind == 'position jump' else 'stamp outlier'
+            self._reject_outlier(held.stamp_ns, reason, NOT_CONTINUED)
+        if self._odom:
+            last, previous = self._odom[-1][0], self._odom[-1][1]
+            dt = stamp - last
+            if abs(dt) > gap:
+                return self._hold(sample, 'time jump')  # or a glitch: the next sample tells
+            if dt == 0:
+                return self._reject('duplicate stamp', seconds(stamp))
+            if dt < 0:
+                return self._reject(
+                    'out-of-order stamp', f'{seconds(stamp)}, {-dt / NS:.6g} s before the '
+                    'previous one')  # fmt: skip
+            if dt > self._held_gap(self._interval_ns):
+                return self._hold(sample, 'gap')
+            if not _near(sample.position, previous[[0, 4, 10]], dt):
+                return self._hold(sample, 'position jump')
+            self._interval_ns = dt if self._interval_ns is None else (
+                self._interval_ns + 0.05 * (dt - self._interval_ns))  # fmt: skip
         self._accept_odometry(sample)
+        return None
+
+    def _held_gap(self, interval_ns: float | None) -> float:
+        """The forward gap (ns) beyond which a sample is held aside until the next one."""
+        gap = self.config.max_gap * NS
+        if interval_ns is None:
+            return gap
+        return min(gap, max(MIN_HELD_GAP, HELD_INTERVALS * interval_ns))
+
+    def _hold(self, sample: OdometrySample, kind: str) -> None:
+        self._held_odom, self._held_kind = sample, kind
         return None
 
     def _reject_outlier(self, stamp_ns: int, reason: str, why: str) -> None:
@@ -395,7 +476,7 @@ class VehicleEngine:
         self.stats.odom_accepted += 1
         held = self._held_refs
         if held and not self._held_refs_backward:
-            if held[0][0] <= sample.stamp_ns + self.config.max_gap * NS:
+            if held[0][0] <= sample.stamp_ns + self._held_gap(self._ref_interval_ns):
                 self._take_held_references()  # the odometry caught up with them
 
     def _take_held_references(self) -> None:
@@ -443,8 +524,9 @@ class VehicleEngine:
         if last is not None:
             latest = self._latest_ns()
             odom = self._odom[-1][0] if self._odom else None
+            hold = self._held_gap(self._ref_interval_ns)
             behind = stamp <= last and stamp < latest - gap
-            ahead = stamp > last + gap and odom is not None and stamp > odom + gap
+            ahead = stamp > last + hold and odom is not None and stamp > odom + hold
             if behind or ahead:  # another timeline's, or a glitch: hold it aside
                 self._held_refs.append(entry)
                 self._held_refs_backward = behind
@@ -455,6 +537,10 @@ class VehicleEngine:
                 return self._reject(
                     'reference out-of-order stamp', f'{seconds(stamp)}, '
                     f'{(last - stamp) / NS:.6g} s before the previous one')  # fmt: skip
+        if last is not None:
+            dt = stamp - last
+            self._ref_interval_ns = dt if self._ref_interval_ns is None else (
+                self._ref_interval_ns + 0.05 * (dt - self._ref_interval_ns))  # fmt: skip
         self._refs.append(entry)
         self.stats.reference_accepted += 1
         return None
@@ -473,6 +559,8 @@ class VehicleEngine:
             return self._reject('non-finite plan')
         if len(stamps) == 0:
             return self._reject('empty plan')
+        if len(stamps) > MAX_PLAN_POSES:
+            return self._reject(f'plan longer than {MAX_PLAN_POSES} poses', f'{len(stamps)} poses')
         largest = float(np.max(np.abs(p)))
         if largest > MAX_POSITION:
             return self._reject(f'plan position beyond {MAX_POSITION:g} m', f'{largest:.6g} m')
@@ -507,6 +595,16 @@ class VehicleEngine:
         self.stats.plans_accepted += 1
         return None
 
+    def _discontinuity(self, new_stamp_ns: int) -> None:
+        """The vehicle's position jumped and the next sample confirmed it (a motion-capture frame
+        reset, a vehicle carried to another place): finish what can be finished and restart the
+        estimator at ``new_stamp_ns`` on the same timeline (the identified model is kept)."""
+        self.stats.position_jumps += 1
+        self._pending.extend(self._run(force_reference=True))
+        self._stop_estimator()
+        self._odom.clear()
+        self._anchor_ns, self._anchor_exact = new_stamp_ns, False
+
     def _time_jump(self, new_stamp_ns: int, backward: bool) -> None:
         """Finish what can be finished, then restart the estimator at ``new_stamp_ns``. Backwards,
         the references held aside become the new timeline's (else those stamped after
@@ -534,8 +632,15 @@ class VehicleEngine:
         self._t_ns = None
 
     def reset(self) -> None:
-        """Forget the identified model and re-initialise at the next step (inputs are kept)."""
+        """Forget the identified model and re-initialise at the next step (inputs are kept). A
+        world frame learnt from the inputs is forgotten too: the next input sets it again."""
         self.stats.resets += 1
+        if self._frame_learnt:
+            self._frame, self._frame_learnt = None, False
+            self._other_frames.clear()
+        self._forget_model()
+
+    def _forget_model(self) -> None:
         if self._t_ns is not None:
             self._anchor_ns = self._t_ns + self.config.step_ns
             self._anchor_exact = True
@@ -564,7 +669,8 @@ class VehicleEngine:
         self.config = replace(self.config, estimator=config)
         iv = config.algorithm == 'cloe_iv'
         if config.algorithm != old.algorithm or (iv and config.identifier != old.identifier):
-            self.reset()
+            self.stats.resets += 1  # (a restart the user asked for; the frame is kept)
+            self._forget_model()
             return
         est = self._est
         if est is None:
@@ -595,7 +701,8 @@ class VehicleEngine:
         out = self.advance()
         out.extend(self._run(force_reference=True))
         if self._held_odom is not None:
-            self._reject_outlier(self._held_odom.stamp_ns, 'stamp outlier', 'nothing followed')
+            reason = 'position outlier' if self._held_kind == 'position jump' else 'stamp outlier'
+            self._reject_outlier(self._held_odom.stamp_ns, reason, 'nothing followed')
             self._held_odom = None
         self._drop_held_references('nothing confirmed it')
         return out
@@ -724,8 +831,7 @@ class VehicleEngine:
         """The estimator failed numerically at ``t_ns``: count it, restart at the next step."""
         self.stats.diverged += 1
         self._t_ns = t_ns
-        self.reset()
-        self.stats.resets -= 1  # (counted as a divergence, not a user's reset)
+        self._forget_model()
 
     def _estimate(
         self, t_ns: int, zeta: np.ndarray, r: np.ndarray, used: np.ndarray | None = None
@@ -823,13 +929,20 @@ class VehicleEngine:
         states = self._predictor.predict(
             e.zeta_hat, theta, coupling, path[0], (ant.starts, path), offsets
         )
-        anticipation = ant.combine(t, states[:, POSITION], e.measured, coupling)
+        center = e.zeta_hat[[0, 4, 10]], e.zeta_hat[[1, 5, 11]]
+        anticipation = ant.combine(t, states[:, POSITION], e.measured, coupling, center)
         states[:, POSITION] = anticipation.positions
-        e.prediction_radius = anticipation.radius
-        e.prediction_weights = anticipation.weights
-        n = len(states)
         step_ns = round(self.config.prediction.step * NS)
-        e.prediction = (e.stamp_ns + step_ns * np.arange(1, n + 1, dtype=np.int64), states)
+        stamps = e.stamp_ns + step_ns * np.arange(1, len(states) + 1, dtype=np.int64)
+        n = int(np.searchsorted(stamps, MAX_STAMP_NS, side='right'))
+        if n == 0:  # the first pose is later than any stamp a message can carry
+            e.prediction_status = PREDICTION_WITHHELD
+            e.prediction_note = 'withheld: its stamps are beyond the largest a message carries'
+            self.stats.predictions_withheld += 1
+            return
+        e.prediction_radius = anticipation.radius[:n]
+        e.prediction_weights = anticipation.weights[:n]
+        e.prediction = (stamps[:n], states[:n])
         self.stats.predictions += 1
         if e.identification is None:
             e.prediction_status = PREDICTION_PROVISIONAL

@@ -31,6 +31,13 @@ from scipy.linalg import expm
 GRAVITY = 9.81
 """Gravitational acceleration used by the model and the simulator, m/s^2."""
 
+#: What no quadrotor exceeds, with margin: the fastest racing quadrotors fly at about 130 m/s,
+#: accelerate at 4-5 g and turn at 35-70 rad/s (2000-4000 deg/s gyroscope ranges). Inputs beyond
+#: these are rejected, and predictions are kept within reach (docs/anticipation.md, section 3).
+QUADROTOR_MAX_SPEED = 150.0  # m/s
+QUADROTOR_MAX_ACCELERATION = 100.0  # m/s^2
+QUADROTOR_MAX_RATE = 100.0  # rad/s
+
 STATE_NAMES: tuple[str, ...] = (
     'x', 'x_dot', 'theta', 'theta_dot',
     'y', 'y_dot', 'phi', 'phi_dot',

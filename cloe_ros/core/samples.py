@@ -9,6 +9,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: The range of the stamps a ROS message carries (builtin_interfaces/Time: int32 seconds, to
+#: 2038-01-19, and nanoseconds), ns.
+MIN_STAMP_NS = -(2**31) * 1_000_000_000
+MAX_STAMP_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
+
 
 @dataclass(frozen=True)
 class OdometrySample:

@@ -13,7 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
+from cloe_ros.core.samples import (
+    MAX_STAMP_NS,
+    MIN_STAMP_NS,
+    OdometrySample,
+    PathSample,
+    PoseSample,
+)
 from cloe_ros.errors import CloeError
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -59,11 +65,21 @@ class MessageError(CloeError):
 
 
 def stamp_to_ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    """A header stamp in ns; a ``nanosec`` of 1e9 or more is not a valid stamp."""
+    nanosec = int(stamp.nanosec)
+    if nanosec >= 1_000_000_000:
+        msg = f'invalid stamp: nanosec {nanosec} is not below 1e9 (sec {int(stamp.sec)})'
+        raise MessageError(msg)
+    return int(stamp.sec) * 1_000_000_000 + nanosec
 
 
 def ns_to_time(ns: int):
-    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    """The builtin_interfaces/Time of ``ns``; a :class:`MessageError` beyond its range."""
+    ns = int(ns)
+    if not MIN_STAMP_NS <= ns <= MAX_STAMP_NS:
+        msg = f'stamp {ns} ns is beyond what a ROS message carries (int32 seconds, 2038-01-19)'
+        raise MessageError(msg)
+    sec, nanosec = divmod(ns, 1_000_000_000)
     return Time(sec=sec, nanosec=nanosec)
 
 

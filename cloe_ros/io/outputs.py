@@ -156,14 +156,22 @@ def encode_state(estimate: Estimate, world_frame: str, child_frame: str) -> byte
     )
 
 
+#: ``excitation.*`` / ``uncertainty.*`` when there is no finite value: not measured (the paper's
+#: algorithms), or not yet (``cloe_iv`` before its first check, or a row not excited: infinite
+#: uncertainty). Both are non-negative otherwise, so the sentinel cannot be mistaken for a value.
+NOT_MEASURED = -1.0
+
+
 def parameter_vector(estimate: Estimate, prediction_status: int = 0) -> np.ndarray:
-    """The values of ``cloe/parameters`` in ``PARAMETER_LABELS`` order."""
+    """The values of ``cloe/parameters`` in ``PARAMETER_LABELS`` order, all finite."""
     n_rows = len(ROW_NAMES)
     if estimate.identification is None:
-        ident = np.concatenate([np.full(2 * n_rows, np.nan), np.full(n_rows, -1.0)])
+        ident = np.full(3 * n_rows, NOT_MEASURED)
     else:
         exc, unc, status = estimate.identification
-        ident = np.concatenate([exc, unc, status.astype(float)])
+        measured = np.concatenate([exc, unc])
+        measured[~np.isfinite(measured)] = NOT_MEASURED
+        ident = np.concatenate([measured, status.astype(float)])
     coupling = (
         estimate.coupling if estimate.coupling is not None
         else np.array([b.coupling for b in COUPLED_BLOCKS])

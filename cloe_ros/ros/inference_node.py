@@ -16,6 +16,7 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 
@@ -376,7 +377,8 @@ class InferenceNode(Node):
             out.append(
                 (
                     f'identifier: {name}',
-                    f'{STATUS_NAMES[int(st)]} (excitation {e:.3f}, uncertainty {u:.1%})',
+                    f'{STATUS_NAMES[int(st)]} (excitation {e:.3f}, uncertainty '
+                    f'{f"{u:.1%}" if math.isfinite(u) else "not measured yet"})',
                 )
             )
         return out
@@ -458,9 +460,12 @@ class InferenceNode(Node):
             ('malformed', str(self.malformed[vehicle])),
             *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
             ('time_jumps', str(s.time_jumps)),
+            ('position_jumps', str(s.position_jumps)),
+            ('frames_relearnt', str(s.frames_relearnt)),
             ('resets', str(s.resets)),
             ('diverged', str(s.diverged)),
-            ('error_norm', f'{s.last_error_norm:.6g}'),
+            ('error_norm', f'{s.last_error_norm:.6g}' if math.isfinite(s.last_error_norm)
+             else 'no step yet'),
             ('last_stamp', '' if s.last_stamp_ns is None else f'{s.last_stamp_ns / NS:.3f}'),
             ('predictions', str(s.predictions)),
             ('predictions_withheld', str(s.predictions_withheld)),

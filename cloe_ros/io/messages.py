@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
@@ -21,6 +22,7 @@ from cloe_ros.core.samples import (
     PoseSample,
 )
 from cloe_ros.errors import CloeError
+from cloe_ros.io import cdr
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -91,59 +93,29 @@ def _deserialize(raw: bytes | memoryview, msgtype: str):
         raise MessageError(msg) from err
 
 
-def _xyz(v) -> np.ndarray:
-    return np.array([v.x, v.y, v.z], dtype=float)
-
-
-def _xyzw(q) -> np.ndarray:
-    return np.array([q.x, q.y, q.z, q.w], dtype=float)
-
-
-def odometry_from_msg(msg) -> OdometrySample:
-    """An :class:`OdometrySample` of a deserialized Odometry message."""
-    return OdometrySample(
-        stamp_ns=stamp_to_ns(msg.header.stamp),
-        frame_id=msg.header.frame_id,
-        child_frame_id=msg.child_frame_id,
-        position=_xyz(msg.pose.pose.position),
-        orientation=_xyzw(msg.pose.pose.orientation),
-        linear=_xyz(msg.twist.twist.linear),
-        angular=_xyz(msg.twist.twist.angular),
-        pose_covariance=np.asarray(msg.pose.covariance, dtype=float),
-        twist_covariance=np.asarray(msg.twist.covariance, dtype=float),
-    )
-
-
 def decode_odometry(raw: bytes | memoryview) -> OdometrySample:
-    """Decode a CDR ``nav_msgs/msg/Odometry``."""
-    return odometry_from_msg(_deserialize(raw, ODOMETRY))
+    """Decode a CDR ``nav_msgs/msg/Odometry`` (lean codec, io/cdr.py)."""
+    try:
+        return cdr.decode_odometry(raw)
+    except cdr.CdrError as err:
+        raise MessageError(str(err)) from None
 
 
 def decode_pose_stamped(raw: bytes | memoryview) -> PoseSample:
-    """Decode a CDR ``geometry_msgs/msg/PoseStamped``."""
-    msg = _deserialize(raw, POSE_STAMPED)
-    return PoseSample(
-        stamp_to_ns(msg.header.stamp),
-        msg.header.frame_id,
-        _xyz(msg.pose.position),
-        _xyzw(msg.pose.orientation),
-    )
+    """Decode a CDR ``geometry_msgs/msg/PoseStamped`` (lean codec, io/cdr.py)."""
+    try:
+        return cdr.decode_pose_stamped(raw)
+    except cdr.CdrError as err:
+        raise MessageError(str(err)) from None
 
 
-def decode_path(raw: bytes | memoryview) -> PathSample:
-    """Decode a CDR ``nav_msgs/msg/Path``."""
-    msg = _deserialize(raw, PATH)
-    n = len(msg.poses)
-    stamps = np.empty(n, dtype=np.int64)
-    positions = np.empty((n, 3))
-    orientations = np.empty((n, 4))
-    for i, ps in enumerate(msg.poses):
-        stamps[i] = stamp_to_ns(ps.header.stamp)
-        positions[i] = _xyz(ps.pose.position)
-        orientations[i] = _xyzw(ps.pose.orientation)
-    return PathSample(
-        stamp_to_ns(msg.header.stamp), msg.header.frame_id, stamps, positions, orientations
-    )
+def decode_path(raw: bytes | memoryview, max_poses: int | None = None) -> PathSample:
+    """Decode a CDR ``nav_msgs/msg/Path`` (lean codec, io/cdr.py); more than ``max_poses``
+    poses is a :class:`MessageError` raised before they are decoded."""
+    try:
+        return cdr.decode_path(raw, max_poses)
+    except cdr.CdrError as err:
+        raise MessageError(str(err)) from None
 
 
 def decode_float64_multi_array(raw: bytes | memoryview) -> tuple[list[str], np.ndarray]:
@@ -159,27 +131,10 @@ def decode_clock(raw: bytes | memoryview) -> int:
 
 def encode_odometry(sample: OdometrySample) -> bytes:
     """CDR of a ``nav_msgs/msg/Odometry``; covariances default to zeros (unknown)."""
-    zeros = np.zeros(36)
-    p, q, v, w = sample.position, sample.orientation, sample.linear, sample.angular
-    msg = Odometry(
-        header=Header(stamp=ns_to_time(sample.stamp_ns), frame_id=sample.frame_id),
-        child_frame_id=sample.child_frame_id,
-        pose=PoseWithCovariance(
-            pose=Pose(
-                position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
-            ),
-            covariance=zeros if sample.pose_covariance is None else sample.pose_covariance,
-        ),
-        twist=TwistWithCovariance(
-            twist=Twist(
-                linear=Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2])),
-                angular=Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2])),
-            ),
-            covariance=zeros if sample.twist_covariance is None else sample.twist_covariance,
-        ),
-    )
-    return bytes(TYPESTORE.serialize_cdr(msg, ODOMETRY))
+    try:
+        return cdr.encode_odometry(sample)
+    except cdr.CdrError as err:
+        raise MessageError(str(err)) from None
 
 
 def _pose(position: np.ndarray, orientation: np.ndarray):
@@ -192,44 +147,43 @@ def _pose(position: np.ndarray, orientation: np.ndarray):
 
 def encode_pose_stamped(sample: PoseSample) -> bytes:
     """CDR of a ``geometry_msgs/msg/PoseStamped``."""
-    msg = PoseStamped(
-        header=Header(stamp=ns_to_time(sample.stamp_ns), frame_id=sample.frame_id),
-        pose=_pose(sample.position, sample.orientation),
-    )
-    return bytes(TYPESTORE.serialize_cdr(msg, POSE_STAMPED))
+    try:
+        return cdr.encode_pose_stamped(sample)
+    except cdr.CdrError as err:
+        raise MessageError(str(err)) from None
 
 
 def encode_path(sample: PathSample) -> bytes:
     """CDR of a ``nav_msgs/msg/Path`` whose poses carry their own (future) stamps."""
-    poses = [
-        PoseStamped(
-            header=Header(stamp=ns_to_time(int(s)), frame_id=sample.frame_id),
-            pose=_pose(p, q),
-        )
-        for s, p, q in zip(sample.stamps_ns, sample.positions, sample.orientations)
-    ]
-    msg = Path(
-        header=Header(stamp=ns_to_time(sample.stamp_ns), frame_id=sample.frame_id), poses=poses
-    )
-    return bytes(TYPESTORE.serialize_cdr(msg, PATH))
+    try:
+        return cdr.encode_path(sample)
+    except cdr.CdrError as err:
+        raise MessageError(str(err)) from None
+
+
+@lru_cache(maxsize=64)
+def _labelled_layout(labels: tuple[str, ...]) -> cdr.MultiArrayLayout:
+    return cdr.MultiArrayLayout([(name, 1, 1) for name in labels])
 
 
 def encode_float64_multi_array(labels: Sequence[str], data: np.ndarray) -> bytes:
     """CDR of a ``std_msgs/msg/Float64MultiArray`` naming every entry.
 
     The layout has one dimension per entry (size 1, stride 1): ``layout.dim[i].label`` names
-    ``data[i]``.
+    ``data[i]``. It is built once per set of labels.
     """
     data = np.asarray(data, dtype=np.float64)
     if len(labels) != data.size:
         msg = f'{len(labels)} labels for {data.size} values'
         raise ValueError(msg)
-    layout = MultiArrayLayout(
-        dim=[MultiArrayDimension(label=name, size=1, stride=1) for name in labels], data_offset=0
-    )
-    return bytes(
-        TYPESTORE.serialize_cdr(Float64MultiArray(layout=layout, data=data), FLOAT64_MULTI_ARRAY)
-    )
+    return _labelled_layout(tuple(labels)).encode(data)
+
+
+@lru_cache(maxsize=64)
+def _shaped_layout(dims: tuple[tuple[str, int], ...]) -> cdr.MultiArrayLayout:
+    sizes = [n for _, n in dims]
+    strides = np.cumprod(sizes[::-1])[::-1]
+    return cdr.MultiArrayLayout([(label, n, int(st)) for (label, n), st in zip(dims, strides)])
 
 
 def encode_multi_array(dims: Sequence[tuple[str, int]], data: np.ndarray) -> bytes:
@@ -237,19 +191,12 @@ def encode_multi_array(dims: Sequence[tuple[str, int]], data: np.ndarray) -> byt
     row-major (``dim[i].stride`` the product of the sizes from ``i`` on), each dimension
     labelled."""
     data = np.ascontiguousarray(data, dtype=np.float64).ravel()
-    sizes = [int(n) for _, n in dims]
+    dims = tuple((str(label), int(n)) for label, n in dims)
+    sizes = [n for _, n in dims]
     if int(np.prod(sizes)) != data.size:
         msg = f'dimensions {sizes} for {data.size} values'
         raise ValueError(msg)
-    strides = np.cumprod(sizes[::-1])[::-1]
-    layout = MultiArrayLayout(
-        dim=[MultiArrayDimension(label=label, size=n, stride=int(st))
-             for (label, n), st in zip(dims, strides)],
-        data_offset=0,
-    )  # fmt: skip
-    return bytes(
-        TYPESTORE.serialize_cdr(Float64MultiArray(layout=layout, data=data), FLOAT64_MULTI_ARRAY)
-    )
+    return _shaped_layout(dims).encode(data)
 
 
 def _marker(stamp_ns: int, frame_id: str, ns: str, marker_id: int, kind: int, position,

@@ -31,7 +31,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cloe_ros.core.anticipation import CHANNELS
-from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
+from cloe_ros.core.engine import MAX_PLAN_POSES, NS, EngineConfig, VehicleEngine
 from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.io import messages
 from cloe_ros.io.config import ALGORITHMS, DEFAULTS, RANGES, SettingsError, build_configs
@@ -324,7 +324,7 @@ class InferenceNode(Node):
 
         def callback(raw: bytes) -> None:
             try:
-                sample = messages.decode_path(raw)
+                sample = messages.decode_path(raw, MAX_PLAN_POSES)  # bounded before decoding
             except MessageError as err:
                 self._malformed(vehicle, 'reference_plan', err)
                 return

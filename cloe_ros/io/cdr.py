@@ -1,0 +1,329 @@
+"""Fixed-layout messages straight from and into CDR bytes, without building message objects.
+
+The contract's inputs (``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped``, ``nav_msgs/Path``)
+and outputs are decoded and encoded here on the hot path of the node and of ``cloe infer``:
+``struct`` for the header and strings, one ``numpy.frombuffer`` for the block of doubles. The
+bytes and samples are those of the general rosbags codec (io/messages.py), which stays the reader
+of everything else; the tests check both agree on every message of the sample bags.
+
+CDR (XCDR1, little or big endian as the encapsulation header says): after the 4-byte header each
+primitive is aligned to its own size, relative to the end of the header. A ``std_msgs/Header`` is
+``int32 sec, uint32 nanosec, string frame_id`` and a string is ``uint32 length`` (with the NUL),
+its bytes, and the NUL.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Sequence
+
+import numpy as np
+
+from cloe_ros.core.samples import (
+    MAX_STAMP_NS,
+    MIN_STAMP_NS,
+    OdometrySample,
+    PathSample,
+    PoseSample,
+)
+from cloe_ros.errors import CloeError
+
+NS = 1_000_000_000
+LITTLE = b'\x00\x01\x00\x00'  # CDR_LE, the encapsulation rclpy and rosbags write
+BIG = b'\x00\x00\x00\x00'  # CDR_BE
+_ENDIAN = {LITTLE[:2]: '<', BIG[:2]: '>'}
+
+
+class CdrError(CloeError, ValueError):
+    """Bytes that are not a message of the expected layout (raised as the codec's MessageError)."""
+
+
+class _Reader:
+    """A cursor over the body of a CDR message (offsets relative to the end of its header)."""
+
+    __slots__ = ('buf', 'end', 'fmt', 'pos', 'what')
+
+    def __init__(self, raw: bytes | memoryview, what: str) -> None:
+        buf = memoryview(raw).cast('B') if isinstance(raw, memoryview) else memoryview(raw)
+        if len(buf) < 4:
+            raise CdrError(f'cannot decode {len(buf)} bytes as {what}: shorter than a CDR header')
+        fmt = _ENDIAN.get(bytes(buf[:2]))
+        if fmt is None:
+            msg = f'cannot decode {len(buf)} bytes as {what}: not a CDR encapsulation'
+            raise CdrError(msg)
+        self.buf, self.end, self.fmt, self.pos, self.what = buf, len(buf), fmt, 4, what
+
+    def _fail(self, why: str) -> CdrError:
+        return CdrError(f'cannot decode {self.end} bytes as {self.what}: {why}')
+
+    def align(self, size: int) -> None:
+        self.pos += -(self.pos - 4) % size
+
+    def _need(self, n: int) -> None:
+        if self.pos + n > self.end:
+            raise self._fail(f'truncated at byte {self.pos} (needs {n} more)')
+
+    def uint32(self) -> int:
+        self.align(4)
+        self._need(4)
+        (value,) = struct.unpack_from(self.fmt + 'I', self.buf, self.pos)
+        self.pos += 4
+        return value
+
+    def stamp_ns(self) -> int:
+        self.align(4)
+        self._need(8)
+        sec, nanosec = struct.unpack_from(self.fmt + 'iI', self.buf, self.pos)
+        self.pos += 8
+        if nanosec >= NS:
+            raise self._fail(f'invalid stamp: nanosec {nanosec} is not below 1e9 (sec {sec})')
+        return sec * NS + nanosec
+
+    def string(self) -> str:
+        n = self.uint32()
+        if n == 0:
+            raise self._fail('a string without its terminating NUL')
+        self._need(n)
+        data = self.buf[self.pos : self.pos + n]
+        self.pos += n
+        if data[-1] != 0:
+            raise self._fail('a string without its terminating NUL')
+        try:
+            return bytes(data[:-1]).decode()
+        except UnicodeDecodeError as err:
+            raise self._fail(f'a string that is not UTF-8 ({err})') from err
+
+    def doubles(self, n: int) -> np.ndarray:
+        self.align(8)
+        self._need(8 * n)
+        out = np.frombuffer(self.buf, dtype=self.fmt + 'f8', count=n, offset=self.pos)
+        self.pos += 8 * n
+        return out.astype(float) if self.fmt == '>' else out.copy()
+
+    def done(self) -> None:
+        # rclpy may pad a message to a multiple of 4 bytes; anything more is not this type
+        if self.end - self.pos > 3:
+            raise self._fail(f'{self.end - self.pos} bytes left over')
+
+
+_HEAD = struct.Struct('<iII')  # stamp and the frame's length, little endian
+_LENGTH = struct.Struct('<I')
+
+
+def decode_odometry(raw: bytes | memoryview) -> OdometrySample:
+    """A ``nav_msgs/msg/Odometry`` (85 doubles after two strings)."""
+    if type(raw) is not bytes:
+        raw = bytes(raw)
+    end = len(raw)
+    # the common case, little endian and whole, with a few struct calls and one frombuffer;
+    # anything else goes through the checking reader, which says what is wrong
+    if end >= 16 and raw[:2] == LITTLE[:2]:
+        sec, nanosec, n1 = _HEAD.unpack_from(raw, 4)
+        at = 16 + n1
+        at2 = at + (-at) % 4
+        if nanosec < NS and n1 and at2 + 4 <= end and raw[at - 1] == 0:
+            (n2,) = _LENGTH.unpack_from(raw, at2)
+            at3 = at2 + 4 + n2
+            start = at3 + (-(at3 - 4)) % 8
+            if n2 and start + 680 <= end and end - start - 680 <= 3 and raw[at3 - 1] == 0:
+                try:
+                    frame = raw[16 : at - 1].decode()
+                    child = raw[at2 + 4 : at3 - 1].decode()
+                except UnicodeDecodeError:
+                    pass
+                else:
+                    d = np.frombuffer(raw, dtype='<f8', count=85, offset=start).copy()
+                    return OdometrySample(sec * NS + nanosec, frame, child, d[0:3], d[3:7],
+                                          d[43:46], d[46:49], d[7:43], d[49:85])  # fmt: skip
+    r = _Reader(raw, 'nav_msgs/msg/Odometry')
+    stamp = r.stamp_ns()
+    frame, child = r.string(), r.string()
+    d = r.doubles(85)
+    r.done()
+    return OdometrySample(stamp, frame, child, d[0:3], d[3:7], d[43:46], d[46:49],
+                          d[7:43], d[49:85])  # fmt: skip
+
+
+def decode_pose_stamped(raw: bytes | memoryview) -> PoseSample:
+    """A ``geometry_msgs/msg/PoseStamped``."""
+    r = _Reader(raw, 'geometry_msgs/msg/PoseStamped')
+    stamp = r.stamp_ns()
+    frame = r.string()
+    d = r.doubles(7)
+    r.done()
+    return PoseSample(stamp, frame, d[0:3], d[3:7])
+
+
+def path_length(raw: bytes | memoryview) -> int:
+    """The number of poses of a ``nav_msgs/msg/Path``, read before any of them is decoded."""
+    r = _Reader(raw, 'nav_msgs/msg/Path')
+    r.stamp_ns()
+    r.string()
+    return r.uint32()
+
+
+def decode_path(raw: bytes | memoryview, max_poses: int | None = None) -> PathSample:
+    """A ``nav_msgs/msg/Path``; more than ``max_poses`` poses is a :class:`CdrError` raised
+    before they are decoded."""
+    r = _Reader(raw, 'nav_msgs/msg/Path')
+    stamp = r.stamp_ns()
+    frame = r.string()
+    n = r.uint32()
+    if max_poses is not None and n > max_poses:
+        raise r._fail(f'{n} poses, more than {max_poses}')
+    if n * 64 > r.end:  # each pose takes at least 64 bytes
+        raise r._fail(f'{n} poses cannot fit')
+    stamps = np.empty(n, dtype=np.int64)
+    values = np.empty((n, 7))
+    for i in range(n):
+        stamps[i] = r.stamp_ns()
+        r.string()  # each pose's own frame: the path's, by the contract
+        values[i] = r.doubles(7)
+    r.done()
+    return PathSample(stamp, frame, stamps, values[:, :3], values[:, 3:])
+
+
+class _Writer:
+    """Little-endian CDR, built into one bytearray."""
+
+    __slots__ = ('buf',)
+
+    def __init__(self) -> None:
+        self.buf = bytearray(LITTLE)
+
+    def align(self, size: int) -> None:
+        self.buf += bytes(-(len(self.buf) - 4) % size)
+
+    def stamp(self, stamp_ns: int) -> None:
+        stamp_ns = int(stamp_ns)
+        if not MIN_STAMP_NS <= stamp_ns <= MAX_STAMP_NS:
+            msg = (f'stamp {stamp_ns} ns is beyond what a ROS message carries (int32 seconds, '
+                   '2038-01-19)')  # fmt: skip
+            raise CdrError(msg)
+        self.align(4)
+        self.buf += struct.pack('<iI', *divmod(stamp_ns, NS))
+
+    def string(self, text: str) -> None:
+        data = text.encode()
+        self.align(4)
+        self.buf += struct.pack('<I', len(data) + 1) + data + b'\x00'
+
+    def uint32(self, value: int) -> None:
+        self.align(4)
+        self.buf += struct.pack('<I', value)
+
+    def int32(self, value: int) -> None:
+        self.align(4)
+        self.buf += struct.pack('<i', value)
+
+    def doubles(self, values) -> None:
+        self.align(8)
+        self.buf += np.ascontiguousarray(values, dtype='<f8').tobytes()
+
+
+_ZEROS36 = np.zeros(36)
+
+
+def encode_odometry(sample: OdometrySample) -> bytes:
+    """CDR of a ``nav_msgs/msg/Odometry``; covariances default to zeros (unknown)."""
+    w = _Writer()
+    w.stamp(sample.stamp_ns)
+    w.string(sample.frame_id)
+    w.string(sample.child_frame_id)
+    pose_cov = _ZEROS36 if sample.pose_covariance is None else sample.pose_covariance
+    twist_cov = _ZEROS36 if sample.twist_covariance is None else sample.twist_covariance
+    w.doubles(np.concatenate([
+        np.asarray(sample.position, float), np.asarray(sample.orientation, float),
+        np.asarray(pose_cov, float).ravel(), np.asarray(sample.linear, float),
+        np.asarray(sample.angular, float), np.asarray(twist_cov, float).ravel(),
+    ]))  # fmt: skip
+    return bytes(w.buf)
+
+
+def encode_pose_stamped(sample: PoseSample) -> bytes:
+    """CDR of a ``geometry_msgs/msg/PoseStamped``."""
+    w = _Writer()
+    w.stamp(sample.stamp_ns)
+    w.string(sample.frame_id)
+    w.doubles(np.concatenate([sample.position, sample.orientation]))
+    return bytes(w.buf)
+
+
+def encode_path(sample: PathSample) -> bytes:
+    """CDR of a ``nav_msgs/msg/Path`` whose poses carry their own stamps and the path's frame,
+    its poses written as structured arrays (stamp, frame, padding to 8, seven doubles)."""
+    w = _Writer()
+    w.stamp(sample.stamp_ns)
+    w.string(sample.frame_id)
+    stamps = np.asarray(sample.stamps_ns, dtype=np.int64)
+    n = len(stamps)
+    w.uint32(n)
+    if n == 0:
+        return bytes(w.buf)
+    if stamps.min() < MIN_STAMP_NS or stamps.max() > MAX_STAMP_NS:
+        w.stamp(int(stamps.max() if stamps.max() > MAX_STAMP_NS else stamps.min()))  # raises
+    frame = sample.frame_id.encode() + b'\x00'
+    # each pose's doubles end 8-aligned, so every pose after the first starts at the same
+    # alignment: two structured arrays, the first pose and the others
+    first = _pose_dtype(len(w.buf) - 4, len(frame))
+    rest = _pose_dtype(len(w.buf) - 4 + first.itemsize, len(frame))
+    values = np.concatenate([sample.positions, sample.orientations], axis=1)
+    head = _fill(np.zeros(1, dtype=first), stamps[:1], frame, values[:1])
+    tail = _fill(np.zeros(n - 1, dtype=rest), stamps[1:], frame, values[1:])
+    return bytes(w.buf) + head.tobytes() + tail.tobytes()
+
+
+def _pose_dtype(offset: int, frame_len: int) -> np.dtype:
+    """A PoseStamped (its frame ``frame_len`` bytes with the NUL) starting at body ``offset`` (a
+    multiple of 4): stamp, frame, padding to 8, seven doubles; padded to a multiple of 4."""
+    values = offset + 12 + frame_len
+    values += -values % 8
+    end = values + 56
+    return np.dtype({
+        'names': ['sec', 'nanosec', 'len', 'frame', 'values'],
+        'formats': ['<i4', '<u4', '<u4', f'V{frame_len}', ('<f8', (7,))],
+        'offsets': [0, 4, 8, 12, values - offset],
+        'itemsize': end - offset,
+    })  # fmt: skip
+
+
+def _fill(poses: np.ndarray, stamps: np.ndarray, frame: bytes, values: np.ndarray) -> np.ndarray:
+    poses['sec'], poses['nanosec'] = np.divmod(stamps, NS)
+    poses['len'] = len(frame)
+    poses['frame'] = np.frombuffer(frame, dtype=f'V{len(frame)}')[0]
+    poses['values'] = values
+    return poses
+
+
+class MultiArrayLayout:
+    """The bytes of a ``std_msgs/msg/Float64MultiArray``'s layout, built once: encoding a message
+    is then the layout, the data's length and its doubles."""
+
+    def __init__(self, dims: Sequence[tuple[str, int, int]], data_offset: int = 0) -> None:
+        w = _Writer()
+        w.uint32(len(dims))
+        for label, size, stride in dims:
+            w.string(label)
+            w.uint32(size)
+            w.uint32(stride)
+        w.uint32(data_offset)
+        self.size = int(np.prod([d[1] for d in dims])) if dims else 0
+        self._head = bytes(w.buf)
+
+    def encode(self, data: np.ndarray) -> bytes:
+        data = np.ascontiguousarray(data, dtype='<f8').ravel()
+        w = _Writer()
+        w.buf = bytearray(self._head)
+        w.uint32(len(data))
+        if len(data):  # (no padding before an empty sequence, as rosbags writes it)
+            w.align(8)
+        return bytes(w.buf) + data.tobytes()
+
+
+def encode_labelled(layout: MultiArrayLayout, n: int, data: np.ndarray) -> bytes:
+    """A Float64MultiArray of ``n`` values with the prebuilt ``layout``."""
+    data = np.asarray(data)
+    if data.size != n:
+        msg = f'{n} labels for {data.size} values'
+        raise ValueError(msg)
+    return layout.encode(data)

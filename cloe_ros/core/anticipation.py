@@ -163,10 +163,12 @@ class History:
         self.logged = np.zeros((self.capacity, 4))  # the reference as received
         self._next = 0
         self.count = 0
+        self._ordered: dict[str, np.ndarray] = {}  # column -> samples oldest first, until append
 
     def clear(self) -> None:
         self._next = 0
         self.count = 0
+        self._ordered.clear()
 
     def append(self, t: float, measured, estimate, reference, logged) -> None:
         k = self._next
@@ -177,6 +179,15 @@ class History:
         self.logged[k] = logged
         self._next = (k + 1) % self.capacity
         self.count += 1
+        self._ordered.clear()
+
+    def ordered(self, column: str) -> np.ndarray:
+        """``column`` (a field name) of the held samples, oldest first (kept until the next
+        append: the scores of one step read it many times)."""
+        out = self._ordered.get(column)
+        if out is None:
+            out = self._ordered[column] = getattr(self, column)[self.last()]
+        return out
 
     def last(self, span: float | None = None) -> slice | np.ndarray:
         """Indices of the samples of the last ``span`` s (all held if None), oldest first."""
@@ -189,16 +200,15 @@ class History:
     def at(self, times: np.ndarray, column: str, channels) -> np.ndarray:
         """``column`` (a field name) interpolated at ``times`` (...,) for ``channels``:
         (..., len(channels)); NaN outside the held span."""
-        idx = self.last()
-        t = self.t[idx]
-        data = getattr(self, column)[idx][:, channels]
+        t = self.ordered('t')
+        data = self.ordered(column)
         out = np.full((*np.shape(times), len(channels)), np.nan)
         if len(t) < 1:
             return out
         times = np.asarray(times, float)
         ok = (times >= t[0] - 1e-9) & (times <= t[-1] + 1e-9)
-        for j in range(len(channels)):
-            out[..., j] = np.where(ok, np.interp(times, t, data[:, j]), np.nan)
+        for j, c in enumerate(channels):
+            out[..., j] = np.where(ok, np.interp(times, t, data[:, c]), np.nan)
         return out
 
 
@@ -364,15 +374,21 @@ class Ensemble:
         their true values (..., D), NaN where unknown. Returns, per scored prediction,
         ``(issue time, horizon indices, squared errors (M, k))``."""
         out = []
-        for i in np.flatnonzero(np.isfinite(self._pending_t)):
-            t0 = self._pending_t[i]
-            times = t0 + self.offsets
-            ks = np.flatnonzero((times > since + 1e-9) & (times <= now + 1e-9))
-            if times[-1] <= now + 1e-9:
-                self._pending_t[i] = np.nan  # every pose is due: done after this
-            if not len(ks):
-                continue
-            actual = truth(times[ks])  # (k, D)
+        live = np.flatnonzero(np.isfinite(self._pending_t))
+        issued = self._pending_t[live]
+        times = issued[:, None] + self.offsets[None, :]  # (P, K)
+        due = (times > since + 1e-9) & (times <= now + 1e-9)
+        self._pending_t[live[times[:, -1] <= now + 1e-9]] = np.nan  # every pose is due: done
+        rows = np.flatnonzero(due.any(axis=1))
+        if not len(rows):
+            return out
+        # the truth of every due pose in one call, then each prediction in issue order
+        actual_all = truth(times[due])  # (n, D)
+        first = np.concatenate([[0], np.cumsum(due.sum(axis=1))])
+        for r in rows:
+            i, t0 = live[r], issued[r]
+            ks = np.flatnonzero(due[r])
+            actual = actual_all[first[r] : first[r + 1]]  # (k, D)
             ok = np.isfinite(actual).all(axis=1)
             if not ok.any():
                 continue

@@ -159,8 +159,10 @@ def test_pose_bytes_are_not_odometry_and_big_endian_decodes():
 def test_a_huge_plan_is_refused_before_its_poses_are_decoded():
     """The pose count is read first: 20k poses claimed in a 40-byte message, or more than the
     bound, fail at once."""
-    path = cdr.encode_path(PathSample(1, 'world', np.arange(1, 4, dtype=np.int64),
-                                      np.zeros((3, 3)), np.tile([0, 0, 0, 1.0], (3, 1))))  # fmt: skip
+    poses = np.tile([0, 0, 0, 1.0], (3, 1))
+    path = cdr.encode_path(
+        PathSample(1, 'world', np.arange(1, 4, dtype=np.int64), np.zeros((3, 3)), poses)
+    )
     with pytest.raises(MessageError, match='3 poses, more than 2'):
         messages.decode_path(path, max_poses=2)
     count_at = 4 + 8 + 4 + len(b'world\x00') + 2  # header, then the count aligned to 4

@@ -1,0 +1,224 @@
+"""Swarm load on one inference node, as a ratio to a do-nothing subscriber under the same load.
+
+    .venv/bin/python scripts/swarm_benchmark.py --vehicles 10 100 --duration 20
+
+For each N: one process publishes N vehicles' ``/uavK/odom`` at 100 Hz and ``/uavK/reference`` at
+10 Hz (a circle, raw CDR, stamped with the wall clock). It is received first by a do-nothing
+subscriber (raw subscriptions on rclpy's EventsExecutor: the floor of receiving them in Python),
+then by one ``cloe_inference`` node (the installed package, cloe_iv, ``vehicles`` listing them).
+Printed per run: messages received of those sent, CPU time of the receiving process per message
+(from /proc), and for the node the share of the odometry that became a published ``cloe/state``
+and the latency of the states of the first vehicle (wall clock at reception minus stamp, p50 and
+p99). Speeds depend on the machine and its load: compare the node's column with the floor's in
+the same run (EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+CLK_TCK = os.sysconf('SC_CLK_TCK')
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def publish(n: int, duration: float) -> None:
+    """The load: N vehicles, odometry 100 Hz, reference 10 Hz, for ``duration`` s."""
+    import numpy as np
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Odometry
+
+    from cloe_ros.core.kinematics import state_to_odometry_one, yaw_quaternion
+    from cloe_ros.core.samples import OdometrySample, PoseSample
+    from cloe_ros.io import cdr
+    from cloe_ros.ros.common import qos
+
+    rclpy.init()
+    node = rclpy.create_node('swarm_load')
+    odom = [node.create_publisher(Odometry, f'/uav{k}/odom', qos(depth=100)) for k in range(n)]
+    ref = [node.create_publisher(PoseStamped, f'/uav{k}/reference', qos(depth=100))
+           for k in range(n)]  # fmt: skip
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline and min(p.get_subscription_count() for p in odom) == 0:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    time.sleep(1.0)  # let every subscription match
+    start = time.monotonic()
+    tick = 0
+    sent = 0
+    while (t := tick * 0.01) < duration:
+        now = start + t
+        delay = now - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        stamp = time.time_ns()
+        for k in range(n):
+            phase = 2 * math.pi * k / max(n, 1)
+            w = 0.5
+            zeta = np.zeros(12)
+            zeta[0], zeta[1] = 2 * k + math.cos(w * t + phase), -w * math.sin(w * t + phase)
+            zeta[4], zeta[5] = math.sin(w * t + phase), w * math.cos(w * t + phase)
+            zeta[10] = 1.0
+            p, q, v, a = state_to_odometry_one(zeta)
+            odom[k].publish(cdr.encode_odometry(OdometrySample(stamp, 'world', 'base_link',
+                                                               p, q, v, a)))  # fmt: skip
+            sent += 1
+            if tick % 10 == 0:
+                ref[k].publish(cdr.encode_pose_stamped(PoseSample(
+                    stamp, 'world', p.copy(), yaw_quaternion(0.0))))  # fmt: skip
+                sent += 1
+        tick += 1
+    print(f'sent {sent}', flush=True)
+    time.sleep(2.0)  # (let the last messages be delivered)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def floor(n: int, duration: float) -> None:
+    """The do-nothing subscriber: counts what it receives, prints the count at the end."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Odometry
+    from rclpy.experimental import EventsExecutor
+
+    from cloe_ros.ros.common import qos
+
+    rclpy.init()
+    node = rclpy.create_node('swarm_floor')
+    count = [0]
+
+    def callback(_raw: bytes) -> None:
+        count[0] += 1
+
+    subs = [node.create_subscription(Odometry, f'/uav{k}/odom', callback, qos(depth=100),
+                                     raw=True) for k in range(n)]  # fmt: skip
+    subs += [node.create_subscription(PoseStamped, f'/uav{k}/reference', callback,
+                                      qos(depth=100), raw=True) for k in range(n)]  # fmt: skip
+    executor = EventsExecutor()
+    executor.add_node(node)
+    end = time.monotonic() + duration + 40.0
+    while time.monotonic() < end and not Path(os.environ['SWARM_DONE']).exists():
+        executor.spin_once(timeout_sec=0.1)
+    print(f'received {count[0]}', flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def listen(n: int, watch: str) -> None:
+    """Counts the node's states of every vehicle; latency of the first vehicle's."""
+    import numpy as np
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.experimental import EventsExecutor
+
+    from cloe_ros.io import cdr
+    from cloe_ros.ros.common import qos
+
+    rclpy.init()
+    node = rclpy.create_node('swarm_listener')
+    count = [0]
+    lat: list[float] = []
+
+    def first(raw: bytes) -> None:
+        count[0] += 1
+        lat.append((time.time_ns() - cdr.decode_odometry(raw).stamp_ns) / 1e9)
+
+    def other(_raw: bytes) -> None:
+        count[0] += 1
+
+    for k in range(n):
+        node.create_subscription(Odometry, f'/uav{k}/cloe/state', first if k == 0 else other,
+                                 qos(depth=1000), raw=True)  # fmt: skip
+    executor = EventsExecutor()
+    executor.add_node(node)
+    while not Path(watch).exists():
+        executor.spin_once(timeout_sec=0.1)
+    end = time.monotonic() + 3.0
+    while time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.1)
+    p50, p99 = (np.percentile(lat, [50, 99]) if lat else (math.nan, math.nan))
+    print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f}', flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def run(n: int, duration: float, receiver: str, tmp: Path) -> dict[str, float]:
+    env = {**os.environ, 'PYTHONPATH': str(REPO)}
+    env.setdefault('ROS_DOMAIN_ID', '91')
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    done = tmp / f'done-{receiver}-{n}'
+    env['SWARM_DONE'] = str(done)
+    me = [sys.executable, __file__]
+    procs = {}
+    if receiver == 'floor':
+        procs['rx'] = subprocess.Popen([*me, '_floor', str(n), str(duration)], env=env,
+                                       stdout=subprocess.PIPE, text=True)  # fmt: skip
+    else:
+        vehicles = '[' + ','.join(f"'/uav{k}'" for k in range(n)) + ']'
+        procs['listen'] = subprocess.Popen([*me, '_listen', str(n), str(done)], env=env,
+                                           stdout=subprocess.PIPE, text=True)  # fmt: skip
+        procs['rx'] = subprocess.Popen(
+            [sys.executable, '-m', 'cloe_ros.ros.inference_node', '--ros-args', '-p',
+             f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p', 'reference_timeout:=5.0'],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    time.sleep(3.0)  # (discovery)
+    cpu0 = cpu_seconds(procs['rx'].pid)
+    pub = subprocess.Popen([*me, '_publish', str(n), str(duration)], env=env,
+                           stdout=subprocess.PIPE, text=True)  # fmt: skip
+    out, _ = pub.communicate()
+    sent = int(out.split()[-1])
+    time.sleep(2.0)
+    cpu = cpu_seconds(procs['rx'].pid) - cpu0
+    done.touch()
+    result = {'sent': sent, 'cpu_s': cpu}
+    if receiver == 'floor':
+        result['received'] = int(procs['rx'].communicate()[0].split()[-1])
+    else:
+        words = procs['listen'].communicate()[0].split()
+        result.update(states=int(words[1]), p50=float(words[3]), p99=float(words[5]))
+        procs['rx'].terminate()
+        procs['rx'].wait(30)
+    return result
+
+
+def main() -> int:
+    if len(sys.argv) > 1 and sys.argv[1].startswith('_'):
+        {'_publish': lambda: publish(int(sys.argv[2]), float(sys.argv[3])),
+         '_floor': lambda: floor(int(sys.argv[2]), float(sys.argv[3])),
+         '_listen': lambda: listen(int(sys.argv[2]), sys.argv[3])}[sys.argv[1]]()
+        return 0
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--vehicles', type=int, nargs='+', default=[10, 100])
+    parser.add_argument('--duration', type=float, default=20.0)
+    args = parser.parse_args()
+    import tempfile
+
+    print('| vehicles | do-nothing subscriber: received, CPU per message | cloe_inference: '
+          'states of odometry, CPU per message, ratio to the floor, latency p50 / p99 |')
+    print('|---|---|---|')
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in args.vehicles:
+            f = run(n, args.duration, 'floor', Path(tmp))
+            c = run(n, args.duration, 'node', Path(tmp))
+            odom = round(args.duration * 100) * n
+            floor_us = 1e6 * f['cpu_s'] / max(f['received'], 1)
+            node_us = 1e6 * c['cpu_s'] / c['sent']
+            print(f"| {n} | {f['received']} of {f['sent']}, {floor_us:.0f} us | "
+                  f"{c['states']} of {odom} ({100 * c['states'] / odom:.0f} %), {node_us:.0f} us, "
+                  f"{node_us / floor_us:.1f}x, {1e3 * c['p50']:.0f} / {1e3 * c['p99']:.0f} ms |",
+                  flush=True)  # fmt: skip
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -14,7 +14,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
-from cloe_ros.errors import CloeError
+from cloe_ros.io.errors import MessageError
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -52,10 +52,6 @@ Marker = _T['visualization_msgs/msg/Marker']
 MarkerArray = _T[MARKER_ARRAY]
 MeshFile = _T['visualization_msgs/msg/MeshFile']
 CompressedImage = _T['sensor_msgs/msg/CompressedImage']
-
-
-class MessageError(CloeError):
-    """Bytes that are not a valid message of the expected type."""
 
 
 def stamp_to_ns(stamp) -> int:

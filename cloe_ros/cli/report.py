@@ -47,7 +47,7 @@ from cloe_ros.core.metrics import (
 from cloe_ros.core.model import BLOCK_SLICES, BLOCKS, N_PARAMS, PARAMETER_NAMES, block_matrices
 from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
-from cloe_ros.io.config import ALGORITHMS, DEFAULTS, build_configs, load_settings
+from cloe_ros.io.config import DEFAULTS, build_configs, load_settings
 from cloe_ros.io.dataset import Predictions, Series, VehicleData, load_flight, vehicle_namespaces
 from cloe_ros.io.reader import BagReader
 
@@ -63,43 +63,6 @@ AGAINST_TEXT = {
     'truth': 'the simulator ground truth (<ns>/ground_truth)',
     'measurement': 'the measurements (<ns>/odom; includes their noise)',
 }
-
-
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        'report',
-        help='tables, figures and an HTML page about a recorded flight (inferring it if needed)',
-        description=(
-            'Report on a rosbag2/MCAP bag: an input bag (<ns>/odom, <ns>/reference) is first '
-            'inferred into FOLDER/inferred_bag (as `cloe infer` does); an output bag of `cloe '
-            'infer` is reported on as it is. Writes FOLDER/index.html (self-contained), '
-            'FOLDER/summary.md, FOLDER/report.json and the figures; prints the main table.'
-        ),
-    )
-    p.add_argument('bag', type=Path, help='bag directory (rosbag2, MCAP) or .mcap file')
-    p.add_argument(
-        '-o',
-        '--output',
-        type=Path,
-        metavar='FOLDER',
-        help='report folder (default: ./<bag name>_report)',
-    )
-    p.add_argument(
-        '--force',
-        action='store_true',
-        help='write into FOLDER even if it is not empty (replaces the report files)',
-    )
-    p.add_argument(
-        '--algorithm', choices=ALGORITHMS, help='estimator for an input bag (default: cloe_iv)'
-    )
-    p.add_argument('--rate', type=float, help='estimator rate for an input bag, Hz (default 100)')
-    p.add_argument(
-        '--config',
-        type=Path,
-        help="YAML with the node's parameters, for an input bag (like `cloe infer`)",
-    )
-    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
-    p.set_defaults(run=run)  # fmt: skip
 
 
 # -- prediction --------------------------------------------------------------------------------

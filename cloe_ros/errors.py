@@ -5,19 +5,25 @@ one ``ERROR: ...`` line (exit status 1) and a node as ``ERROR: ...`` at start-up
 
     CloeError
     ├── ConfigError (a ValueError too)  a setting that cannot be used        cloe_ros.errors
-    │   ├── ParameterError              a node parameter ("parameter 'x': ")  cloe_ros.ros.common
-    │   └── StartupError                a node's command line (--params-file)  cloe_ros.ros.common
+    │   ├── OutputConfigError           the output settings (namespace, rate)  cloe_ros.io.errors
+    │   ├── ParameterError              a node parameter ("parameter 'x': ")  cloe_ros.ros.errors
+    │   └── StartupError                a node's command line (--params-file)  cloe_ros.ros.errors
     ├── BagError                        a bag that cannot be read            cloe_ros.io.errors
     │   └── RecoverError                a bag that cannot be recovered       cloe_ros.io.errors
     ├── WriterError                     a bag that cannot be written         cloe_ros.io.errors
-    ├── MessageError                    CDR that cannot be decoded/encoded   cloe_ros.io.messages
+    ├── MessageError                    CDR that cannot be decoded/encoded   cloe_ros.io.errors
     └── CliError                        a command line that cannot be run    cloe_ros.cli.errors
 
+All of them are importable from :mod:`cloe_ros` (none of these modules imports rclpy).
 ``ConfigError`` covers every invalid setting: the core's configuration dataclasses, the settings
 of ``cloe infer --config`` (``cloe_ros.io.config.SettingsError`` is the same class, kept under
-that name for its importers) and, through ``ParameterError``, the nodes' parameters. Each class
-is also importable from the modules that raise it (``cloe_ros.io.reader.BagError``,
-``cloe_ros.io.writer.WriterError``, ``cloe_ros.io.recover.RecoverError``).
+that name for its importers), the outputs and, through ``ParameterError``, the nodes'
+parameters. Each class is also importable from the modules that raise it
+(``cloe_ros.io.reader.BagError``, ``cloe_ros.io.writer.WriterError``,
+``cloe_ros.io.recover.RecoverError``, ``cloe_ros.io.messages.MessageError``,
+``cloe_ros.io.outputs.OutputConfigError``, ``cloe_ros.ros.common.ParameterError``). The MCAP
+record parser's ``RecordError`` and the reader's ``_Damage`` are internal: the reader and
+recovery translate them into a ``BagError`` / ``RecoverError`` naming the file.
 """
 
 from __future__ import annotations

@@ -23,10 +23,10 @@ from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from cloe_ros.core.evaluation import HORIZONS
 from cloe_ros.io.dataset import load_flight
 
 H = 0.01  # integration step and resampling grid, s
-HORIZONS = (0.5, 1.0, 2.0, 5.0)
 ISSUE_EVERY = 20  # grid steps between predictions (5 Hz, as the engine publishes them)
 AXES = {'x': (0, 1, 0), 'y': (4, 5, 1), 'z': (10, 11, 3)}  # position, velocity, reference index
 

@@ -25,52 +25,6 @@ RTF_TOLERANCE = 0.9
 ALGORITHMS = (('cloe', 'CLOE'), ('cloe_sm', 'CLOE-SM'), ('cloe_iv', 'CLOE-IV'))
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        'demo',
-        help='run simulator, CLOE / CLOE-SM / CLOE-IV inference and the recorder as processes',
-        description=(
-            "On a private DDS domain, start bag_recorder, three cloe_inference nodes (the paper's "
-            'CLOE and CLOE-SM side by side, and cloe_iv) and quadrotor_sim as separate processes, '
-            'fly a scenario, stop them cleanly, then print the comparison table computed from the '
-            'recorded bag and write the plots.'
-        ),
-    )
-    p.add_argument(
-        '-o',
-        '--output',
-        type=Path,
-        default=Path('demo_results'),
-        help='folder for the bag, plots and logs (default: %(default)s)',
-    )
-    p.add_argument(
-        '--scenario',
-        default='position',
-        choices=sorted(SCENARIOS),
-        help='simulated scenario (default: %(default)s)',
-    )
-    p.add_argument(
-        '--duration',
-        type=float,
-        default=None,
-        help="simulated seconds (default: the scenario's; position: 50)",
-    )
-    p.add_argument(
-        '--speed',
-        type=float,
-        default=2.0,
-        help='real-time factor of the simulation (default: %(default)s)',
-    )
-    p.add_argument(
-        '--rate',
-        type=float,
-        default=100.0,
-        help='inference rate, Hz of message time (default: %(default)s)',
-    )
-    p.add_argument('--no-plots', action='store_true', help='table only')
-    p.set_defaults(run=run)  # fmt: skip
-
-
 def _start(name, params, env, logs: Path, node_name=None) -> NodeProcess:
     return NodeProcess(name, params, env, logs / f'{node_name or name}.log', node_name)
 

@@ -1,12 +1,8 @@
 """``cloe evaluate``: how well the identification and the anticipation work, with numbers.
 
-``cloe evaluate sim``: a simulated scenario (truth known): parameter error per block over time,
-prediction RMSE at 0.5 / 1 / 2 / 5 s beside the true-model, constant-velocity and hold-position
-predictors. ``cloe evaluate bag BAG``: the same prediction scores on a recording against what the
-vehicle did next (no parameter truth), optionally with the recorded future references as the plan.
-``cloe evaluate corpus DIR...``: every flight of many bags, replayed as ``cloe infer`` runs them,
-scored per flight and as the median over flights beside four baselines, with the coverage of the
-95 % radius.
+What each target (``sim``, ``bag``, ``corpus``) does is the command's description,
+:data:`cloe_ros.cli.commands.EVALUATE_DESCRIPTION` (``cloe evaluate --help``), and its options are
+declared there too; this module runs them.
 """
 
 from __future__ import annotations
@@ -14,10 +10,10 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
+from cloe_ros.cli.commands import DEFAULT_ALGORITHMS, DEFAULT_RATE, DEFAULT_SCORE_FROM_SIM
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.outputs import check_new_file
 from cloe_ros.cli.progress import ProgressBar
@@ -42,129 +38,13 @@ from cloe_ros.core.simulator import (
     QuadrotorSimulator,
     true_parameters,
 )
-from cloe_ros.io.config import ALGORITHMS, build_configs, load_settings
+from cloe_ros.io.config import build_configs, load_settings
 
 BLOCK_NAMES = [b.name for b in BLOCKS]
-#: Estimators and rate when neither the command line nor a --config file gives them.
-DEFAULT_ALGORITHMS = {'sim': ['cloe_sm', 'cloe_iv'], 'bag': ['cloe_iv']}
-DEFAULT_RATE = 100.0
-DEFAULT_SCORE_FROM_SIM = 30.0
 #: Why the engine withholds a prediction.
 WITHHELD_BECAUSE = (
     'the identified model had an unstable block, and unstable dynamics are never extrapolated'
 )
-
-
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        'evaluate',
-        help='score identification and prediction (simulation or a bag) against baselines',
-        description=__doc__.split('\n\n')[1],
-    )
-    ev = p.add_subparsers(dest='target', metavar='TARGET', required=True)
-    s = ev.add_parser('sim', help='a simulated scenario, truth known')
-    s.add_argument('--scenario', default='position', choices=sorted(SCENARIOS))
-    s.add_argument('--duration', type=float, default=90.0, help='simulated s (default: 90)')
-    _algorithms(s, 'odometry and estimator rate, Hz', 'sim')
-    s.add_argument(
-        '--noise', action='store_true', help='measurement noise: 2 mm, 1 cm/s, 2 mrad, 0.01 rad/s'
-    )
-    s.add_argument('--no-disturbance', action='store_true', help='without the §6.1 disturbances')
-    s.add_argument('--seed', type=int, default=0, help='noise seed (>= 0; default: 0)')
-    s.add_argument(
-        '--score-from',
-        type=float,
-        default=None,
-        help='score predictions issued after this time, s; it must lie within the run '
-        f'(default: {DEFAULT_SCORE_FROM_SIM:g})',
-    )
-    s.add_argument(
-        '--segments',
-        type=float,
-        default=0.0,
-        help='also score the predictions per segment of this many s (long runs; default 0: no '
-        'segments)',
-    )
-    _common(s)
-    b = ev.add_parser('bag', help='a recorded flight: predictions against what happened next')
-    b.add_argument('bag', type=Path)
-    b.add_argument(
-        '--vehicle',
-        default=None,
-        help="vehicle namespace, '/' for the un-namespaced one (default: the first)",
-    )
-    _algorithms(b, 'estimator rate, Hz', 'bag')
-    b.add_argument(
-        '--plan-from-reference',
-        action='store_true',
-        help='give the estimator the recorded future references as reference_plan',
-    )
-    b.add_argument(
-        '--score-from',
-        type=float,
-        default=5.0,
-        help='score predictions issued this many s after the start (default: 5)',
-    )
-    b.add_argument(
-        '--score-to',
-        type=float,
-        default=np.inf,
-        help='score only predictions issued and reaching their horizon by this many s after the '
-        'start (default: the end), e.g. to leave out a landing',
-    )
-    _common(b)
-    c = ev.add_parser(
-        'corpus',
-        help='many recorded flights: predictions against what happened next, per flight and '
-        'as the median over flights, beside the baselines',
-    )
-    c.add_argument(
-        'paths', type=Path, nargs='+', metavar='PATH',
-        help='bag directories or .mcap files, or folders holding them (searched recursively)',
-    )  # fmt: skip
-    c.add_argument(
-        '--jobs', '-j', type=int, default=0,
-        help='flights evaluated at once, in separate processes (default 0: one per core)',
-    )  # fmt: skip
-    c.add_argument(
-        '--score-from', type=float, default=5.0,
-        help='score predictions issued this many s after the first odometry (default: 5)',
-    )  # fmt: skip
-    c.add_argument(
-        '--config', type=Path,
-        help="YAML with the node's parameters (as for `cloe infer`), the same for every flight",
-    )  # fmt: skip
-    c.add_argument('--json', type=Path, help='also write the numbers to this JSON file (new)')
-    c.add_argument('--force', action='store_true', help='replace the --json file if it exists')
-    c.add_argument('-q', '--quiet', action='store_true', help='no progress line')
-    p.set_defaults(run=run)  # fmt: skip
-
-
-def _algorithms(p: argparse.ArgumentParser, rate: str, target: str) -> None:
-    p.add_argument(
-        '--algorithms',
-        nargs='+',
-        choices=ALGORITHMS,
-        help="estimators to run (default: the --config file's algorithm, else "
-        f'{" ".join(DEFAULT_ALGORITHMS[target])})',
-    )
-    p.add_argument(
-        '--rate',
-        type=float,
-        help=f"{rate} (default: the --config file's rate, else {DEFAULT_RATE:g})",
-    )
-
-
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        '--config',
-        type=Path,
-        help="YAML with the node's parameters (as for `cloe infer`); its algorithm and rate apply "
-        'unless --algorithms / --rate are given',
-    )
-    p.add_argument('--json', type=Path, help='also write the numbers to this JSON file (new)')
-    p.add_argument('--force', action='store_true', help='replace the --json file if it exists')
-    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
 
 
 def resolve_settings(args: argparse.Namespace) -> dict:

@@ -15,7 +15,7 @@ from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.core.engine import NS, VehicleEngine
 from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
-from cloe_ros.io.config import ALGORITHMS, build_configs, load_settings
+from cloe_ros.io.config import build_configs, load_settings
 from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE
 from cloe_ros.io.outputs import OutputEncoder
 from cloe_ros.io.reader import BagError, BagReader
@@ -23,49 +23,6 @@ from cloe_ros.io.writer import BagWriter, WriterError
 
 #: Input topics copied into the output bag (under each vehicle namespace) so it stands alone.
 COPIED = (ODOM, REFERENCE, PLAN, 'ground_truth', 'true_parameters')
-
-
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        'infer',
-        help='run the inference engine over a recorded bag and write its outputs to a new bag',
-        description=(
-            'Runs the same engine as the cloe_inference node over a rosbag2/MCAP bag: every '
-            'vehicle with <ns>/odom (nav_msgs/Odometry) and <ns>/reference '
-            '(geometry_msgs/PoseStamped) topics is inferred (with <ns>/reference_plan, '
-            'nav_msgs/Path, when present); other topics are ignored. Writes '
-            '<ns>/<output_ns>/state, <ns>/<output_ns>/parameters and <ns>/<output_ns>/prediction '
-            'into OUT_BAG, with copies of the inputs so the output bag is self-contained.'
-        ),
-    )
-    p.add_argument('bag', type=Path, help='input bag directory (rosbag2, MCAP)')
-    p.add_argument('-o', '--output', type=Path, required=True, help='output bag directory (new)')
-    p.add_argument('--algorithm', choices=ALGORITHMS, help='estimator (default: cloe_iv)')
-    p.add_argument('--rate', type=float, help='estimator rate, Hz of message time (default 100)')
-    p.add_argument(
-        '--config',
-        type=Path,
-        help="YAML with the node's parameters (cloe_inference: ros__parameters: ...)",
-    )
-    p.add_argument(
-        '--vehicles',
-        nargs='+',
-        metavar='NS',
-        help='only these vehicle namespaces (default: every one found)',
-    )
-    p.add_argument(
-        '--no-inputs',
-        action='store_true',
-        help='do not copy the input topics (`cloe report` then has nothing to score against)',
-    )
-    p.add_argument(
-        '--compression',
-        choices=('zstd', 'none'),
-        default='zstd',
-        help='chunk compression of the output bag (default: %(default)s)',
-    )
-    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
-    p.set_defaults(run=run)  # fmt: skip
 
 
 @dataclass

@@ -3,7 +3,11 @@
 ``cloe demo`` starts the nodes on a private, localhost-only DDS domain; every other subcommand
 works offline on files and needs no DDS domain.
 
-Each subcommand lives in its own module with ``add_parser(subparsers)`` and ``run(args) -> int``.
+Each subcommand's arguments are declared in :mod:`cloe_ros.cli.commands`, which imports nothing
+that does the work; the subcommand itself lives in its own module, ``cloe_ros.cli.<command>``
+with ``run(args) -> int``, imported only when it runs. ``cloe --help`` and ``cloe COMMAND --help``
+therefore start in about the time Python takes to import numpy (no scipy, matplotlib, rosbags or
+rclpy; a test checks it).
 Errors a user can act on derive from :class:`cloe_ros.errors.CloeError` and are printed as
 ``ERROR: ...`` with exit status 1, never as a traceback. The exit statuses (:data:`EXIT_STATUS`,
 shown by ``cloe --help``) are those a shell expects: 2 for a command line that does not parse
@@ -21,10 +25,8 @@ import sys
 from collections.abc import Sequence
 
 from cloe_ros import __version__
-from cloe_ros.cli import bag, demo, evaluate, infer, live, paper, report
+from cloe_ros.cli.commands import COMMANDS
 from cloe_ros.errors import CloeError
-
-SUBCOMMANDS = (demo, paper, infer, report, evaluate, bag, live)
 
 #: Exit status of an error the command reports as ``ERROR: ...``.
 EXIT_ERROR = 1
@@ -60,8 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
     sub = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
-    for module in SUBCOMMANDS:
-        module.add_parser(sub)
+    for add_command in COMMANDS:
+        add_command(sub)
     return parser
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -22,52 +21,6 @@ SUBSYSTEM_LABELS = {
     'angles': 'Euler angles (theta, phi, psi)',
     'rates': 'Angular rates (theta_dot, phi_dot, psi_dot)',
 }
-
-
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        'paper',
-        help="reproduce the paper's experiments: tables and Figures 6-8, 10-12",
-        description=(
-            'Simulate the position-control (50 s, extended to 200 s for the parameter figures) '
-            'and trajectory-control (140 s) scenarios with and without the disturbances of §6.1, '
-            'run CLOE and CLOE-SM at 1 kHz, print the RMSE / ITAE / parameter-error tables beside '
-            "the paper's values and write the figures."
-        ),
-    )
-    p.add_argument(
-        '-o',
-        '--output',
-        type=Path,
-        default=Path('paper_results'),
-        help='folder for the figures and results.json, new or empty (default: %(default)s)',
-    )
-    p.add_argument(
-        '--force',
-        action='store_true',
-        help='write into the folder even if it is not empty (replaces results.json and figures)',
-    )
-    p.add_argument(
-        '--rate',
-        type=float,
-        default=1000.0,
-        help='simulation and estimation rate, Hz (default: %(default)s, as the paper)',
-    )
-    p.add_argument(
-        '--parameter-duration',
-        type=float,
-        default=200.0,
-        help='length of the position run for the parameter figures, s (default: 200)',
-    )
-    p.add_argument(
-        '--quick',
-        action='store_true',
-        help='a smoke test: 200 Hz instead of --rate, and a 50 s position run for the parameter '
-        'figures instead of --parameter-duration (the tables cover 50 s and 140 s as always)',
-    )
-    p.add_argument('--no-plots', action='store_true', help='tables only')
-    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
-    p.set_defaults(run=run)  # fmt: skip
 
 
 def _fmt(x: float) -> str:

@@ -38,8 +38,8 @@ from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.infer import InferResult, check_inputs, infer_bag
 from cloe_ros.cli.outputs import check_folder, make_folder
 from cloe_ros.cli.progress import ProgressBar
+from cloe_ros.core.evaluation import HORIZONS, PredictionScore, score_positions
 from cloe_ros.core.metrics import (
-    position_rmse,
     rmse_norm,
     subsystem_itae,
     subsystem_rmse,
@@ -47,13 +47,11 @@ from cloe_ros.core.metrics import (
 from cloe_ros.core.model import BLOCK_SLICES, BLOCKS, N_PARAMS, PARAMETER_NAMES, block_matrices
 from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
-from cloe_ros.io.config import ALGORITHMS, DEFAULTS, build_configs, load_settings
+from cloe_ros.io.config import DEFAULTS, build_configs, load_settings
 from cloe_ros.io.dataset import Predictions, Series, VehicleData, load_flight, vehicle_namespaces
 from cloe_ros.io.reader import BagReader
 
 NS = 1_000_000_000
-#: Prediction horizons, s (docs/report.md; those of ``cloe evaluate`` too).
-HORIZONS_S = (0.5, 1.0, 2.0, 5.0)
 #: A predicted pose counts for horizon h when its lead time is within this fraction of h.
 HORIZON_TOLERANCE = 0.2
 #: Where an input bag's inference goes, inside the report folder.
@@ -67,62 +65,13 @@ AGAINST_TEXT = {
 }
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        'report',
-        help='tables, figures and an HTML page about a recorded flight (inferring it if needed)',
-        description=(
-            'Report on a rosbag2/MCAP bag: an input bag (<ns>/odom, <ns>/reference) is first '
-            'inferred into FOLDER/inferred_bag (as `cloe infer` does); an output bag of `cloe '
-            'infer` is reported on as it is. Writes FOLDER/index.html (self-contained), '
-            'FOLDER/summary.md, FOLDER/report.json and the figures; prints the main table.'
-        ),
-    )
-    p.add_argument('bag', type=Path, help='bag directory (rosbag2, MCAP) or .mcap file')
-    p.add_argument(
-        '-o',
-        '--output',
-        type=Path,
-        metavar='FOLDER',
-        help='report folder (default: ./<bag name>_report)',
-    )
-    p.add_argument(
-        '--force',
-        action='store_true',
-        help='write into FOLDER even if it is not empty (replaces the report files)',
-    )
-    p.add_argument(
-        '--algorithm', choices=ALGORITHMS, help='estimator for an input bag (default: cloe_iv)'
-    )
-    p.add_argument('--rate', type=float, help='estimator rate for an input bag, Hz (default 100)')
-    p.add_argument(
-        '--config',
-        type=Path,
-        help="YAML with the node's parameters, for an input bag (like `cloe infer`)",
-    )
-    p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
-    p.set_defaults(run=run)  # fmt: skip
-
-
 # -- prediction --------------------------------------------------------------------------------
-
-
-@dataclass
-class PredictionScore:
-    """Prediction RMSE (m) per horizon: the inference's paths and two baselines built from the
-    measurement at each path's issue time; ``counts`` paths were scored per horizon."""
-
-    horizons: tuple[float, ...]
-    model: list[float]
-    constant_velocity: list[float]
-    hold_position: list[float]
-    counts: list[int]
 
 
 def prediction_rmse(
     prediction: Predictions,
     measured: Series,
-    horizons: tuple[float, ...] = HORIZONS_S,
+    horizons: tuple[float, ...] = HORIZONS,
     tolerance: float = HORIZON_TOLERANCE,
 ) -> PredictionScore:
     """Position RMSE of predicted paths against the measured position, at each horizon.
@@ -132,7 +81,8 @@ def prediction_rmse(
     the measured position linearly interpolated at that pose's stamp. The baselines predict the
     same stamp from the measured state at ``t_i`` (interpolated): constant velocity
     ``p(t_i) + v(t_i) (t - t_i)`` (world-frame velocity) and hold position ``p(t_i)``. Paths
-    whose pose or measurement is missing (outside the measured span) are left out.
+    whose pose or measurement is missing (outside the measured span) are left out. The scoring
+    itself is :func:`~cloe_ros.core.evaluation.score_positions`, as in ``cloe evaluate``.
 
     Args:
         prediction: Paths of one output (see :class:`cloe_ros.io.dataset.Predictions`).
@@ -144,33 +94,22 @@ def prediction_rmse(
     n_paths = len(prediction.t_ns)
     issue = prediction.t_ns.astype(np.int64)
     state0 = interpolate(measured, issue) if n_paths else np.zeros((0, 12))
-    p0, v0 = state0[:, [0, 4, 10]], state0[:, [1, 5, 11]]
     stamps = prediction.stamps_ns
     valid = stamps >= 0
     rows = np.arange(n_paths)
-    model, cv, hold, counts = [], [], [], []
-    for h in horizons:
-        if not n_paths or not stamps.size:
-            model.append(math.nan), cv.append(math.nan), hold.append(math.nan), counts.append(0)
-            continue
+    predicted = np.full((n_paths, len(horizons), 3), np.nan)
+    actual = np.full_like(predicted, np.nan)
+    lead = np.zeros((n_paths, len(horizons)))
+    for j, h in enumerate(horizons if n_paths and stamps.size else ()):
         target = issue + round(h * NS)
         gap = np.where(valid, np.abs(stamps - target[:, None]), np.iinfo(np.int64).max)
         k = np.argmin(gap, axis=1)
         chosen = stamps[rows, k]
-        lead = (chosen - issue) / NS
-        predicted = prediction.positions[rows, k]
-        actual = interpolate(measured, chosen)[:, [0, 4, 10]]
-        ok = valid[rows, k] & (np.abs(lead - h) <= tolerance * h)
-        ok &= np.all(np.isfinite(predicted), axis=1) & np.all(np.isfinite(actual), axis=1)
-        ok &= np.all(np.isfinite(state0), axis=1)
-        counts.append(int(ok.sum()))
-        if not ok.any():
-            model.append(math.nan), cv.append(math.nan), hold.append(math.nan)
-            continue
-        model.append(float(position_rmse(predicted[ok], actual[ok])))
-        cv.append(float(position_rmse(p0[ok] + v0[ok] * lead[ok, None], actual[ok])))
-        hold.append(float(position_rmse(p0[ok], actual[ok])))
-    return PredictionScore(tuple(horizons), model, cv, hold, counts)
+        lead[:, j] = (chosen - issue) / NS
+        near = valid[rows, k] & (np.abs(lead[:, j] - h) <= tolerance * h)
+        predicted[near, j] = prediction.positions[rows, k][near]
+        actual[:, j] = interpolate(measured, chosen)[:, [0, 4, 10]]
+    return score_positions(horizons, predicted, actual, state0, lead)
 
 
 # -- tables ------------------------------------------------------------------------------------
@@ -417,10 +356,10 @@ def _prediction_table(vehicle: VehicleData, preds: dict[str, PredictionScore]) -
     for n in preds:
         columns += [f'{n} model', f'{n} const. velocity', f'{n} hold', f'{n} paths']
     rows = []
-    for i, h in enumerate(HORIZONS_S):
+    for i, h in enumerate(HORIZONS):
         row = [f'{h:g}']
         for p in preds.values():
-            row += [p.model[i], p.constant_velocity[i], p.hold_position[i], p.counts[i]]
+            row += [p.model[i], p.constant_velocity[i], p.hold_position[i], p.count[i]]
         rows.append(row)
     return Table(
         f'{vehicle.namespace or "/"}: prediction RMSE against the measured position [m]',
@@ -582,10 +521,10 @@ def report_vehicle(vehicle: VehicleData, folder: Path, progress=None) -> Vehicle
             preds[out.label] = p
             entry['prediction'] = {
                 'horizons_s': list(p.horizons),
-                'model': p.model,
-                'constant_velocity': p.constant_velocity,
-                'hold_position': p.hold_position,
-                'paths': p.counts,
+                'model': p.model.tolist(),
+                'constant_velocity': p.constant_velocity.tolist(),
+                'hold_position': p.hold_position.tolist(),
+                'paths': p.count.tolist(),
             }
         data['outputs'][name] = entry
         tell('score', (k + 1) / (len(vehicle.outputs) + 1))
@@ -614,7 +553,7 @@ def report_vehicle(vehicle: VehicleData, folder: Path, progress=None) -> Vehicle
     if preds:
         tag = vehicle.namespace.strip('/').replace('/', '_') or 'vehicle'
         paths.append(prediction_figure(
-            HORIZONS_S,
+            HORIZONS,
             {n: {'model': p.model, 'constant velocity': p.constant_velocity,
                  'hold position': p.hold_position} for n, p in preds.items()},
             folder / f'{tag}_prediction.png',
@@ -940,7 +879,7 @@ def _report(args, bag, folder, settings, topics, counts, outputs, bar, start, sp
             'wall_s': inference.wall_s,
         },
         'diagnostics': diagnostics or None,
-        'horizons_s': list(HORIZONS_S),
+        'horizons_s': list(HORIZONS),
         'vehicles': {r.label: r.data for r in reports},
     }
     (folder / 'report.json').write_text(json.dumps(_finite(numbers), indent=2) + '\n')

@@ -1,13 +1,25 @@
-"""The estimator of each algorithm, behind one constructor."""
+"""The algorithms: their names, and the estimator of each behind one constructor.
+
+The names need no import of the estimators (which bring scipy), so that the command line can offer
+them without that cost.
+"""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from cloe_ros.core.cloe_iv import CloeIvEstimator
-from cloe_ros.core.estimator import ALGORITHMS, CloeEstimator, EstimatorConfig
+if TYPE_CHECKING:
+    from cloe_ros.core.cloe_iv import CloeIvEstimator
+    from cloe_ros.core.estimator import CloeEstimator, EstimatorConfig
 
-__all__ = ['ALGORITHMS', 'make_estimator']
+__all__ = ['ALGORITHMS', 'PAPER_ALGORITHMS', 'make_estimator']
+
+#: Algorithms implemented exactly as the paper states them.
+PAPER_ALGORITHMS = ('cloe', 'cloe_sm')
+#: Every algorithm: the paper's two, and CLOE-SM with the IV identifier (cloe_ros.core.cloe_iv).
+ALGORITHMS = (*PAPER_ALGORITHMS, 'cloe_iv')
 
 
 def make_estimator(
@@ -15,6 +27,9 @@ def make_estimator(
 ) -> CloeEstimator | CloeIvEstimator:
     """The estimator for ``config.algorithm``, started at ``zeta0`` (N, 12) with the reference
     ``r0`` (N, 4), stepping ``h`` s."""
+    from cloe_ros.core.cloe_iv import CloeIvEstimator
+    from cloe_ros.core.estimator import CloeEstimator
+
     if config.algorithm == 'cloe_iv':
         return CloeIvEstimator(config, zeta0, r0, h)
     return CloeEstimator(config, zeta0)

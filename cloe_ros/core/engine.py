@@ -57,6 +57,7 @@ from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
 from cloe_ros.core.kinematics import (
     odometry_to_state_one,
     quaternion_yaw,
+    quaternion_yaw_one,
     roll_pitch_one,
     unwrap_near,
 )
@@ -507,7 +508,7 @@ class VehicleEngine:
         stamp, gap = sample.stamp_ns, self.config.max_gap * NS
         p = sample.position
         x, y, z, w = (float(c) / (norm if abs(norm - 1.0) > ROUNDOFF else 1.0) for c in q)
-        yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        yaw = quaternion_yaw_one((x, y, z, w))
         entry = (stamp, np.array([p[0], p[1], yaw, p[2]]))
         held = self._held_refs
         if held:

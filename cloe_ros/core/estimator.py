@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cloe_ros.core.algorithms import ALGORITHMS
 from cloe_ros.core.identifier import IdentifierConfig
 from cloe_ros.core.model import (
     A_KNOWN,
@@ -42,11 +43,6 @@ from cloe_ros.core.model import (
     check_shape,
 )
 from cloe_ros.errors import ConfigError
-
-#: Algorithms implemented exactly as the paper states them.
-PAPER_ALGORITHMS = ('cloe', 'cloe_sm')
-#: Every algorithm: the paper's two, and CLOE-SM with the IV identifier (cloe_ros.core.cloe_iv).
-ALGORITHMS = (*PAPER_ALGORITHMS, 'cloe_iv')
 
 
 def _per_state(four_chain: Sequence[float], two_chain: Sequence[float]) -> tuple[float, ...]:

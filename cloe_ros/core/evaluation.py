@@ -17,17 +17,24 @@ from cloe_ros.core.identifier import IDENTIFIED, ROW_NAMES
 from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
 from cloe_ros.core.metrics import parameter_error
 from cloe_ros.core.model import BLOCKS, PAPER_COUPLING
-from cloe_ros.core.prediction import PredictionConfig, Predictor, constant_velocity, hold_position
+from cloe_ros.core.prediction import PredictionConfig, Predictor
 from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
 
+#: The horizons every prediction score reports, s: ``cloe evaluate`` (sim, bag, corpus) and
+#: ``cloe report``.
 HORIZONS = (0.5, 1.0, 2.0, 5.0)
 T0_NS = 1_700_000_000 * NS  # an epoch-like origin for simulated stamps
 
 
 @dataclass
 class PredictionScore:
-    """Prediction RMSE (m) per horizon for the estimator and the baselines, over ``count``
-    predictions issued in ``[t_from, t_to]`` s."""
+    """Prediction RMSE (m) per horizon of a predictor beside the constant-velocity and
+    hold-position baselines from the same start (:func:`score_positions`).
+
+    ``count`` predictions were scored per horizon; ``true_model`` is the RMSE of the true-model
+    predictor on the same predictions (simulation) or None. ``withheld``, ``t_from`` and ``t_to``
+    describe the window of a run (``cloe evaluate``): predictions withheld, and the issue times
+    scored, s."""
 
     horizons: tuple[float, ...]
     model: np.ndarray
@@ -35,10 +42,82 @@ class PredictionScore:
     hold_position: np.ndarray
     true_model: np.ndarray | None
     count: np.ndarray
-    withheld: int
-    t_from: float
-    t_to: float
+    withheld: int = 0
+    t_from: float = 0.0
+    t_to: float = np.inf
     model_per_axis: np.ndarray | None = None  # (horizons, 3): the model's RMSE along x, y, z
+
+
+def kinematic_baselines(start: np.ndarray, lead: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The model-free predictions from states ``start`` (P, 12) at ``lead`` (P, H) s later:
+    constant velocity ``p0 + v0 lead`` (world-frame velocity) and hold position ``p0``, positions
+    (P, H, 3), m."""
+    p0, v0 = start[:, None, [0, 4, 10]], start[:, None, [1, 5, 11]]
+    cv = p0 + v0 * lead[..., None]
+    return cv, np.broadcast_to(p0, cv.shape).copy()
+
+
+def rmse_per_horizon(predicted: np.ndarray, actual: np.ndarray, scored: np.ndarray) -> np.ndarray:
+    """``sqrt(mean ||predicted - actual||^2)`` per horizon over the predictions ``scored``, m.
+
+    Args:
+        predicted, actual: Positions (P, H, 3).
+        scored: Which prediction counts at which horizon (P, H); NaN where none does.
+
+    """
+    sq = np.sum((predicted - actual) ** 2, axis=-1)
+    return np.array([np.sqrt(np.mean(sq[scored[:, j], j])) if scored[:, j].any() else np.nan
+                     for j in range(scored.shape[1])])  # fmt: skip
+
+
+def score_positions(
+    horizons: Sequence[float],
+    predicted: np.ndarray,
+    actual: np.ndarray,
+    start: np.ndarray,
+    lead: np.ndarray,
+    true_predicted: np.ndarray | None = None,
+    **window,
+) -> PredictionScore:
+    """Position RMSE of predictions at each horizon against where the vehicle was, beside the
+    baselines from the state each prediction started from: the one scorer of ``cloe evaluate``
+    (:func:`score_predictions`) and ``cloe report``.
+
+    Prediction ``i`` counts at horizon ``j`` when ``predicted[i, j]``, ``actual[i, j]`` and
+    ``start[i]`` are all finite: NaN marks a pose or an outcome that is missing. The baselines
+    predict the same time, ``lead[i, j]`` s after the start: constant velocity
+    ``p0 + v0 lead`` (world-frame velocity) and hold position ``p0``.
+
+    Args:
+        horizons: Horizons (H,), s.
+        predicted: Predicted positions (P, H, 3), world frame, m.
+        actual: Where the vehicle was at those times (P, H, 3), m.
+        start: The state each prediction started from (P, 12) (model state order).
+        lead: Time from each start to each predicted position (P, H), s.
+        true_predicted: Positions (P, H, 3) of a second predictor (the true model), scored on
+            the same predictions, or None.
+        window: ``withheld``, ``t_from``, ``t_to`` of :class:`PredictionScore`.
+
+    """
+    horizons = tuple(horizons)
+    scored = (np.isfinite(predicted).all(axis=-1) & np.isfinite(actual).all(axis=-1)
+              & np.isfinite(start).all(axis=-1)[:, None])  # fmt: skip
+    cv, hold = kinematic_baselines(start, lead)
+    err2 = (predicted - actual) ** 2
+    per_axis = [np.sqrt(np.mean(err2[scored[:, j], j], axis=0)) if scored[:, j].any()
+                else np.full(3, np.nan) for j in range(len(horizons))]  # fmt: skip
+    return PredictionScore(
+        horizons=horizons,
+        model=rmse_per_horizon(predicted, actual, scored),
+        constant_velocity=rmse_per_horizon(cv, actual, scored),
+        hold_position=rmse_per_horizon(hold, actual, scored),
+        true_model=None
+        if true_predicted is None
+        else rmse_per_horizon(true_predicted, actual, scored),
+        count=scored.sum(axis=0),
+        model_per_axis=np.array(per_axis).reshape(len(horizons), 3),
+        **window,
+    )
 
 
 @dataclass
@@ -152,31 +231,32 @@ def score_predictions(
     valid: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> PredictionScore:
     """RMSE of the predicted positions at each horizon against ``zeta_truth``, beside the
-    baselines from the same starting estimate; ``true_model = (theta, coupling)`` adds the
-    true-model predictor (same start, same reference handling: held, or ``plans(t0)`` with times
-    relative to the run's start). ``valid(times) -> bool array`` restricts the scoring to
-    predictions whose issue time and horizon time are both valid (e.g. in flight)."""
+    baselines from the same starting estimate (:func:`score_positions`); ``true_model = (theta,
+    coupling)`` adds the true-model predictor (same start, same reference handling: held, or
+    ``plans(t0)`` with times relative to the run's start). ``valid(times) -> bool array``
+    restricts the scoring to predictions whose issue time and horizon time are both valid (e.g.
+    in flight). A horizon counts at the prediction's step nearest to it."""
     horizons = tuple(horizons)
     keep = [i for i, t0 in enumerate(run.pred_t) if t_from <= t0 <= t_to]
     k_of = [round(h / step) for h in horizons]
-    sq = {name: [[] for _ in horizons] for name in ('model', 'cv', 'hold', 'true')}
-    per_axis: list[list[np.ndarray]] = [[] for _ in horizons]
+    dts = np.array([k * step for k in k_of])
+    predicted = np.full((len(keep), len(horizons), 3), np.nan)
+    actual = np.full_like(predicted, np.nan)
+    truth = np.full_like(predicted, np.nan) if true_model is not None else None
     truth_predictor = None
     if true_model is not None:
         n = max(k_of)
         truth_predictor = Predictor(PredictionConfig(horizon=n * step, step=step))
-    for i in keep:
+    for row, i in enumerate(keep):
         t0, states = run.pred_t[i], run.pred_states[i]
         zeta0 = run.pred_zeta0[i]
-        dts = np.array([k * step for k in k_of])
-        actual = actual_positions(t_truth, zeta_truth, t0 + dts)
+        times = actual_positions(t_truth, zeta_truth, t0 + dts)
         if valid is not None:
             ok = valid(np.concatenate([[t0], t0 + dts]))
             if not ok[0]:
                 continue
-            actual[~ok[1:]] = np.nan
-        cv = constant_velocity(zeta0, dts)
-        hold = hold_position(zeta0, dts)
+            times[~ok[1:]] = np.nan
+        actual[row] = times
         true_states = None
         if truth_predictor is not None:
             plan = plans(t0) if plans is not None else None
@@ -186,33 +266,21 @@ def score_predictions(
             true_states = truth_predictor.predict(zeta0, true_model[0], true_model[1],
                                                   run.pred_ref[i], plan)  # fmt: skip
         for j, k in enumerate(k_of):
-            if k > len(states) or not np.all(np.isfinite(actual[j])):
+            if k > len(states):
                 continue
-            err2 = (states[k - 1][[0, 4, 10]] - actual[j]) ** 2
-            sq['model'][j].append(np.sum(err2))
-            per_axis[j].append(err2)
-            sq['cv'][j].append(np.sum((cv[j] - actual[j]) ** 2))
-            sq['hold'][j].append(np.sum((hold[j] - actual[j]) ** 2))
+            predicted[row, j] = states[k - 1][[0, 4, 10]]
             if true_states is not None:
-                sq['true'][j].append(np.sum((true_states[k - 1][[0, 4, 10]] - actual[j]) ** 2))
-
-    def rmse(name):
-        return np.array([np.sqrt(np.mean(v)) if v else np.nan for v in sq[name]])
-
-    def axis_rmse(squares):
-        return np.sqrt(np.mean(squares, axis=0)) if squares else np.full(3, np.nan)
-
-    return PredictionScore(
-        horizons=horizons,
-        model=rmse('model'),
-        constant_velocity=rmse('cv'),
-        hold_position=rmse('hold'),
-        true_model=rmse('true') if true_model is not None else None,
-        count=np.array([len(v) for v in sq['model']]),
+                truth[row, j] = true_states[k - 1][[0, 4, 10]]
+    return score_positions(
+        horizons,
+        predicted,
+        actual,
+        run.pred_zeta0[keep].reshape(-1, 12),
+        np.broadcast_to(dts, predicted.shape[:2]),
+        truth,
         withheld=run.withheld,
         t_from=t_from,
         t_to=float(min(t_to, run.pred_t[-1])) if len(run.pred_t) else t_from,
-        model_per_axis=np.array([axis_rmse(v) for v in per_axis]),
     )
 
 
@@ -391,12 +459,8 @@ def baseline_paths(record: FlightRecord) -> dict[str, np.ndarray]:
       (:func:`causal_lag`): ``r(t + h - L)`` while that is in the past, else ``r(t)``.
     """
     h = np.asarray(record.horizons, float)
-    p0 = record.state[:, [0, 4, 10]]
-    v0 = record.state[:, [1, 5, 11]]
-    out = {
-        'constant_velocity': p0[:, None, :] + h[None, :, None] * v0[:, None, :],
-        'hold_position': np.broadcast_to(p0[:, None, :], (len(p0), len(h), 3)).copy(),
-    }
+    cv, hold = kinematic_baselines(record.state, np.broadcast_to(h, (len(record.state), len(h))))
+    out = {'constant_velocity': cv, 'hold_position': hold}
     now_ref = held(record.ref_t, record.ref_p, record.issue_t)
     out['reference_held'] = np.broadcast_to(now_ref[:, None, :], out['hold_position'].shape).copy()
     lagged = out['reference_held'].copy()
@@ -420,11 +484,7 @@ def score_flight(record: FlightRecord, score_from: float = 5.0) -> FlightScore:
     paths = {'model': record.predicted[keep]}
     paths.update({k: v[keep] for k, v in baseline_paths(record).items()})
     ok = np.isfinite(truth).all(axis=-1) & np.isfinite(paths['model']).all(axis=-1)
-    rmse = {}
-    for name, pred in paths.items():
-        sq = np.sum((pred - truth) ** 2, axis=-1)
-        rmse[name] = np.array([np.sqrt(np.mean(sq[ok[:, j], j])) if ok[:, j].any() else np.nan
-                               for j in range(len(h))])  # fmt: skip
+    rmse = {name: rmse_per_horizon(pred, truth, ok) for name, pred in paths.items()}
     err = np.sqrt(np.sum((paths['model'] - truth) ** 2, axis=-1))
     inside = err <= record.radius[keep]
     coverage = np.array([np.mean(inside[ok[:, j], j]) if ok[:, j].any() else np.nan

@@ -149,14 +149,32 @@ def quaternion_yaw(q: np.ndarray) -> np.ndarray:
     return quaternion_to_euler(q)[..., 2]
 
 
+def quaternion_to_euler_one(quaternion) -> tuple[float, float, float]:
+    """:func:`quaternion_to_euler` for one unit quaternion ``(x, y, z, w)`` (not normalised
+    here), with scalar math (the hot path of a single sample): ``(roll, pitch, yaw)``, rad."""
+    x, y, z, w = (float(c) for c in quaternion)
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def quaternion_yaw_one(quaternion) -> float:
+    """:func:`quaternion_yaw` for one unit quaternion ``(x, y, z, w)`` (not normalised here),
+    rad."""
+    return quaternion_to_euler_one(quaternion)[2]
+
+
+def _unit_one(quaternion) -> tuple[float, float, float, float]:
+    x, y, z, w = (float(c) for c in quaternion)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    return x / norm, y / norm, z / norm, w / norm
+
+
 def roll_pitch_one(quaternion: np.ndarray) -> tuple[float, float]:
     """Roll and pitch (rad) of one quaternion ``(x, y, z, w)``, normalised here: the tilt to check
     before :func:`odometry_to_state_one`, whose Euler rates are singular at pitch +-pi/2."""
-    x, y, z, w = (float(c) for c in quaternion)
-    norm = math.sqrt(x * x + y * y + z * z + w * w)
-    x, y, z, w = x / norm, y / norm, z / norm, w / norm
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = math.asin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
+    roll, pitch, _ = quaternion_to_euler_one(_unit_one(quaternion))
     return roll, pitch
 
 
@@ -165,12 +183,7 @@ def odometry_to_state_one(
 ) -> np.ndarray:
     """:func:`odometry_to_state` for one sample, with scalar math (the node's hot path: about ten
     times faster than the array version on a single sample)."""
-    x, y, z, w = (float(c) for c in quaternion)
-    norm = math.sqrt(x * x + y * y + z * z + w * w)
-    x, y, z, w = x / norm, y / norm, z / norm, w / norm
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = math.asin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    roll, pitch, yaw = quaternion_to_euler_one(_unit_one(quaternion))
     cr, sr = math.cos(roll), math.sin(roll)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cy, sy = math.cos(yaw), math.sin(yaw)

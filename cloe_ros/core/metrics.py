@@ -56,12 +56,3 @@ def parameter_error(theta_hat: np.ndarray, theta_true: np.ndarray) -> dict[str, 
         out[block.name] = diff / np.linalg.norm(theta_true[sl])
     out['all'] = np.linalg.norm(theta_hat - theta_true, axis=-1) / np.linalg.norm(theta_true)
     return out
-
-
-def position_rmse(predicted: np.ndarray, actual: np.ndarray) -> np.ndarray:
-    """RMSE of the 3-D position error ``sqrt(mean ||p_pred - p||^2)`` over the first axis, m.
-
-    Inputs (T, ..., 3); NaN rows (no prediction or no truth) are left out.
-    """
-    d = np.sum((np.asarray(predicted) - np.asarray(actual)) ** 2, axis=-1)
-    return np.sqrt(np.nanmean(d, axis=0))

@@ -223,15 +223,3 @@ def fit_reference_offset(
         lhs += np.einsum('iab,iac->bc', gk, gk)
         rhs += np.einsum('iab,ia->b', gk, err)
     return np.linalg.solve(lhs, rhs)
-
-
-def constant_velocity(zeta: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """Baseline: positions (len(dt), 3) extrapolated with the current world velocity."""
-    p = zeta[[0, 4, 10]]
-    v = zeta[[1, 5, 11]]
-    return p + np.outer(dt, v)
-
-
-def hold_position(zeta: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """Baseline: the current position at every future time (len(dt), 3)."""
-    return np.broadcast_to(zeta[[0, 4, 10]], (len(dt), 3)).copy()

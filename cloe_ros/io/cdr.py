@@ -26,16 +26,12 @@ from cloe_ros.core.samples import (
     PathSample,
     PoseSample,
 )
-from cloe_ros.errors import CloeError
+from cloe_ros.io.errors import MessageError
 
 NS = 1_000_000_000
 LITTLE = b'\x00\x01\x00\x00'  # CDR_LE, the encapsulation rclpy and rosbags write
 BIG = b'\x00\x00\x00\x00'  # CDR_BE
 _ENDIAN = {LITTLE[:2]: '<', BIG[:2]: '>'}
-
-
-class CdrError(CloeError, ValueError):
-    """Bytes that are not a message of the expected layout (raised as the codec's MessageError)."""
 
 
 class _Reader:
@@ -46,15 +42,16 @@ class _Reader:
     def __init__(self, raw: bytes | memoryview, what: str) -> None:
         buf = memoryview(raw).cast('B') if isinstance(raw, memoryview) else memoryview(raw)
         if len(buf) < 4:
-            raise CdrError(f'cannot decode {len(buf)} bytes as {what}: shorter than a CDR header')
+            msg = f'cannot decode {len(buf)} bytes as {what}: shorter than a CDR header'
+            raise MessageError(msg)
         fmt = _ENDIAN.get(bytes(buf[:2]))
         if fmt is None:
             msg = f'cannot decode {len(buf)} bytes as {what}: not a CDR encapsulation'
-            raise CdrError(msg)
+            raise MessageError(msg)
         self.buf, self.end, self.fmt, self.pos, self.what = buf, len(buf), fmt, 4, what
 
-    def _fail(self, why: str) -> CdrError:
-        return CdrError(f'cannot decode {self.end} bytes as {self.what}: {why}')
+    def _fail(self, why: str) -> MessageError:
+        return MessageError(f'cannot decode {self.end} bytes as {self.what}: {why}')
 
     def align(self, size: int) -> None:
         self.pos += -(self.pos - 4) % size
@@ -163,7 +160,7 @@ def path_length(raw: bytes | memoryview) -> int:
 
 
 def decode_path(raw: bytes | memoryview, max_poses: int | None = None) -> PathSample:
-    """A ``nav_msgs/msg/Path``; more than ``max_poses`` poses is a :class:`CdrError` raised
+    """A ``nav_msgs/msg/Path``; more than ``max_poses`` poses is a :class:`MessageError` raised
     before they are decoded."""
     r = _Reader(raw, 'nav_msgs/msg/Path')
     stamp = r.stamp_ns()
@@ -199,7 +196,7 @@ class _Writer:
         if not MIN_STAMP_NS <= stamp_ns <= MAX_STAMP_NS:
             msg = (f'stamp {stamp_ns} ns is beyond what a ROS message carries (int32 seconds, '
                    '2038-01-19)')  # fmt: skip
-            raise CdrError(msg)
+            raise MessageError(msg)
         self.align(4)
         self.buf += struct.pack('<iI', *divmod(stamp_ns, NS))
 

@@ -187,7 +187,7 @@ def build_configs(values: dict[str, Any]) -> tuple[EngineConfig, OutputConfig]:
             ),
         )
         output = OutputConfig(str(v['output_ns']), n['parameters_rate'])
-    except (ConfigError, OutputConfigError) as err:  # (the checks above leave none of these)
+    except ConfigError as err:  # (the checks above leave none of these)
         raise SettingsError(str(err)) from err
     return engine, output
 

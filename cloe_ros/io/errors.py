@@ -1,15 +1,16 @@
-"""Errors of the bag layer (no rclpy): reading, recovering and writing bags.
+"""Errors of the io layer (no rclpy): reading, recovering and writing bags, decoding and encoding
+messages, the output settings.
 
 Each is re-exported by the module that raises it (:mod:`cloe_ros.io.reader`,
-:mod:`cloe_ros.io.recover`, :mod:`cloe_ros.io.writer`); the whole tree is in
-:mod:`cloe_ros.errors`.
+:mod:`cloe_ros.io.recover`, :mod:`cloe_ros.io.writer`, :mod:`cloe_ros.io.messages`,
+:mod:`cloe_ros.io.outputs`) and by :mod:`cloe_ros`; the whole tree is in :mod:`cloe_ros.errors`.
 """
 
 from __future__ import annotations
 
-from cloe_ros.errors import CloeError
+from cloe_ros.errors import CloeError, ConfigError
 
-__all__ = ['BagError', 'RecoverError', 'WriterError']
+__all__ = ['BagError', 'MessageError', 'OutputConfigError', 'RecoverError', 'WriterError']
 
 
 class BagError(CloeError):
@@ -32,3 +33,11 @@ class WriterError(CloeError):
     def __init__(self, msg: str, path: object = None, reason: str | None = None) -> None:
         super().__init__(msg)
         self.path, self.reason = path, reason
+
+
+class MessageError(CloeError):
+    """Bytes that are not a valid message of the expected type."""
+
+
+class OutputConfigError(ConfigError):
+    """Output settings that cannot be used (``name`` the setting, ``reason`` why)."""

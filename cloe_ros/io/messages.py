@@ -21,8 +21,8 @@ from cloe_ros.core.samples import (
     PathSample,
     PoseSample,
 )
-from cloe_ros.errors import CloeError
 from cloe_ros.io import cdr
+from cloe_ros.io.errors import MessageError
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -62,10 +62,6 @@ MeshFile = _T['visualization_msgs/msg/MeshFile']
 CompressedImage = _T['sensor_msgs/msg/CompressedImage']
 
 
-class MessageError(CloeError):
-    """Bytes that are not a valid message of the expected type."""
-
-
 def stamp_to_ns(stamp) -> int:
     """A header stamp in ns; a ``nanosec`` of 1e9 or more is not a valid stamp."""
     nanosec = int(stamp.nanosec)
@@ -95,27 +91,18 @@ def _deserialize(raw: bytes | memoryview, msgtype: str):
 
 def decode_odometry(raw: bytes | memoryview) -> OdometrySample:
     """Decode a CDR ``nav_msgs/msg/Odometry`` (lean codec, io/cdr.py)."""
-    try:
-        return cdr.decode_odometry(raw)
-    except cdr.CdrError as err:
-        raise MessageError(str(err)) from None
+    return cdr.decode_odometry(raw)
 
 
 def decode_pose_stamped(raw: bytes | memoryview) -> PoseSample:
     """Decode a CDR ``geometry_msgs/msg/PoseStamped`` (lean codec, io/cdr.py)."""
-    try:
-        return cdr.decode_pose_stamped(raw)
-    except cdr.CdrError as err:
-        raise MessageError(str(err)) from None
+    return cdr.decode_pose_stamped(raw)
 
 
 def decode_path(raw: bytes | memoryview, max_poses: int | None = None) -> PathSample:
     """Decode a CDR ``nav_msgs/msg/Path`` (lean codec, io/cdr.py); more than ``max_poses``
     poses is a :class:`MessageError` raised before they are decoded."""
-    try:
-        return cdr.decode_path(raw, max_poses)
-    except cdr.CdrError as err:
-        raise MessageError(str(err)) from None
+    return cdr.decode_path(raw, max_poses)
 
 
 def decode_float64_multi_array(raw: bytes | memoryview) -> tuple[list[str], np.ndarray]:
@@ -131,10 +118,7 @@ def decode_clock(raw: bytes | memoryview) -> int:
 
 def encode_odometry(sample: OdometrySample) -> bytes:
     """CDR of a ``nav_msgs/msg/Odometry``; covariances default to zeros (unknown)."""
-    try:
-        return cdr.encode_odometry(sample)
-    except cdr.CdrError as err:
-        raise MessageError(str(err)) from None
+    return cdr.encode_odometry(sample)
 
 
 def _pose(position: np.ndarray, orientation: np.ndarray):
@@ -147,18 +131,12 @@ def _pose(position: np.ndarray, orientation: np.ndarray):
 
 def encode_pose_stamped(sample: PoseSample) -> bytes:
     """CDR of a ``geometry_msgs/msg/PoseStamped``."""
-    try:
-        return cdr.encode_pose_stamped(sample)
-    except cdr.CdrError as err:
-        raise MessageError(str(err)) from None
+    return cdr.encode_pose_stamped(sample)
 
 
 def encode_path(sample: PathSample) -> bytes:
     """CDR of a ``nav_msgs/msg/Path`` whose poses carry their own (future) stamps."""
-    try:
-        return cdr.encode_path(sample)
-    except cdr.CdrError as err:
-        raise MessageError(str(err)) from None
+    return cdr.encode_path(sample)
 
 
 @lru_cache(maxsize=64)

@@ -20,7 +20,7 @@ from cloe_ros.core.identifier import ROW_NAMES
 from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry_one
 from cloe_ros.core.model import COUPLED_BLOCKS, PARAMETER_NAMES, STATE_NAMES
 from cloe_ros.core.samples import OdometrySample, PathSample
-from cloe_ros.errors import CloeError
+from cloe_ros.io.errors import OutputConfigError
 from cloe_ros.io.messages import (
     FLOAT64_MULTI_ARRAY,
     MARKER_ARRAY,
@@ -58,10 +58,6 @@ PARAMETER_LABELS: tuple[str, ...] = tuple(
 RADIUS_COLUMNS = 'stamp_s,radius_m'
 
 
-class OutputConfigError(CloeError, ValueError):
-    """Output settings that cannot be used."""
-
-
 def join_topic(*parts: str) -> str:
     """Join namespace parts into a topic name (relative if the first part is)."""
     text = '/'.join(p.strip('/') for p in parts if p and p.strip('/'))
@@ -83,12 +79,12 @@ class OutputConfig:
 
     def __post_init__(self) -> None:
         if not (0.01 <= self.parameters_rate <= 10000.0):
-            msg = f'parameters_rate must be within [0.01, 10000] Hz, got {self.parameters_rate}'
-            raise OutputConfigError(msg)
+            msg = f'must be within [0.01, 10000] Hz, got {self.parameters_rate}'
+            raise OutputConfigError(msg, 'parameters_rate')
         ns = self.output_ns.strip('/')
         if not ns or any(not (c.isalnum() or c in '_/') for c in ns):
-            msg = f'output_ns {self.output_ns!r} is not a valid namespace'
-            raise OutputConfigError(msg)
+            msg = f'{self.output_ns!r} is not a valid namespace'
+            raise OutputConfigError(msg, 'output_ns')
 
 
 class OutputEncoder:

@@ -31,7 +31,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 
-from cloe_ros.errors import ConfigError
+from cloe_ros.ros.errors import ParameterError, StartupError
 
 NS = 1_000_000_000
 
@@ -80,10 +80,6 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
             node.destroy_node()
         rclpy.try_shutdown()
     return status
-
-
-class StartupError(ConfigError):
-    """The command line names something the node cannot start with (reported, exit status 1)."""
 
 
 def params_files(argv: Sequence[str]) -> list[str]:
@@ -203,17 +199,6 @@ def _rcl_reason(err: Exception) -> str:
     """rcl's message without its source locations (``, at /project/src/parse.c:782``)."""
     text = str(err).replace('failed to initialize rcl: ', '')
     return re.sub(r',? at [^,]*\.c:\d+', '', text).strip()
-
-
-class ParameterError(ConfigError):
-    """A parameter value the node cannot start with (reported, exit status 1).
-
-    The message is ``parameter '<name>': <reason>`` (the documented form), or the reason alone
-    for a problem no single parameter has."""
-
-    def __init__(self, reason: str, name: str | None = None) -> None:
-        super().__init__(f'parameter {name!r}: {reason}' if name else reason)
-        self.name, self.reason = name, reason
 
 
 def describe(

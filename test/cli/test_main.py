@@ -78,3 +78,55 @@ def test_head_in_a_shell_pipeline():
     assert proc.returncode == 0
     assert proc.stdout == f'bag:       {POSITION}\n'
     assert proc.stderr == ''
+
+
+#: What `cloe --help` must not import: each takes a large part of a second (scipy.signal and
+#: scipy.stats seconds on a busy machine), and only the command that runs needs it.
+HEAVY = ('scipy', 'matplotlib', 'rclpy', 'rosbags', 'mcap')
+
+HELP_SCRIPT = r'''
+import argparse, contextlib, io, sys
+from cloe_ros.cli.main import build_parser, main
+
+def commands(parser, prefix=()):
+    yield prefix
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from commands(sub, (*prefix, name))
+
+shown = 0
+for command in list(commands(build_parser())):
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        try:
+            main([*command, '--help'])
+        except SystemExit as end:
+            assert end.code == 0, (command, end.code)
+    assert out.getvalue().startswith('usage: cloe'), command
+    shown += 1
+heavy = sorted({m.split('.')[0] for m in sys.modules} & set(sys.argv[1:]))
+print(shown, *heavy)
+'''
+
+
+def test_help_imports_nothing_heavy():
+    """`cloe --help` and every `cloe COMMAND [ACTION] --help` start without scipy, matplotlib,
+    rclpy, rosbags or mcap: the command modules that need them are imported when they run
+    (cloe_ros.cli.commands). Checked on the modules a fresh interpreter imported, not on time."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.run([sys.executable, '-c', HELP_SCRIPT, *HEAVY], env=env,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    shown, *heavy = proc.stdout.split()
+    assert int(shown) >= 14  # cloe, 7 commands, evaluate's 3 targets, bag's 3 actions
+    assert heavy == []
+
+
+def test_the_command_runs_its_module(monkeypatch):
+    """The parsed command calls the run function of its module, looked up when it runs."""
+    from cloe_ros.cli.main import build_parser
+
+    calls = []
+    monkeypatch.setattr(bag_command, 'run_info', lambda args: calls.append(args.bag) or 7)
+    args = build_parser().parse_args(['bag', 'info', 'B'])
+    assert args.run(args) == 7 and calls == [Path('B')]

@@ -132,7 +132,7 @@ def test_prediction_rmse_against_closed_form():
     positions[-1, 11:] = np.nan
     score = prediction_rmse(Predictions(issue, stamps, positions), measured)
     assert score.horizons == (0.5, 1.0, 2.0, 5.0)
-    assert score.counts == [30, 30, 29, 29]
+    assert score.count.tolist() == [30, 30, 29, 29]
     np.testing.assert_allclose(score.model, 0.05, rtol=1e-9)
     np.testing.assert_allclose(score.constant_velocity, 0.0, atol=1e-12)
     np.testing.assert_allclose(score.hold_position, np.linalg.norm(v) * np.array(score.horizons),
@@ -147,7 +147,7 @@ def test_prediction_rmse_skips_poses_far_from_the_horizon():
     stamps = issue[:, None] + np.arange(0, 6 * NS + 1, 2 * NS)
     positions = np.zeros((1, stamps.shape[1], 3))
     score = prediction_rmse(Predictions(issue, stamps, positions), measured)
-    assert score.counts == [0, 0, 1, 1]
+    assert score.count.tolist() == [0, 0, 1, 1]
     assert math.isnan(score.model[0]) and score.model[2] == 0.0
 
 

@@ -1,4 +1,6 @@
-"""The core (and the io layer) never import rclpy or ROS message packages."""
+"""The core and the io layer (and the package root with its errors) never import rclpy or ROS
+message packages: every module under cloe_ros.core and cloe_ros.io is imported under a hook that
+refuses them."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import subprocess
 import sys
 
 import cloe_ros.core
+import cloe_ros.io
 
 SCRIPT = r'''
 import importlib, sys
@@ -16,7 +19,7 @@ class Block:
     def find_spec(self, name, path=None, target=None):
         top = name.split('.')[0]
         if top in ('rclpy', 'rosidl_runtime_py', 'rosbag2_py') or top.endswith('_msgs'):
-            raise ImportError(f'core imported {name}')
+            raise ImportError(f'core or io imported {name}')
         return None
 
 sys.meta_path.insert(0, Block())
@@ -32,9 +35,10 @@ def _modules(package):
     return [m.name for m in pkgutil.walk_packages(package.__path__, package.__name__ + '.')]
 
 
-def test_no_module_under_core_imports_rclpy():
-    modules = _modules(cloe_ros.core)
+def test_no_module_under_core_or_io_imports_rclpy():
+    modules = ['cloe_ros', 'cloe_ros.errors', *_modules(cloe_ros.core), *_modules(cloe_ros.io)]
     assert 'cloe_ros.core.estimator' in modules and 'cloe_ros.core.simulator' in modules
+    assert 'cloe_ros.io.reader' in modules and 'cloe_ros.io.messages' in modules
     out = subprocess.run([sys.executable, '-c', SCRIPT, *modules], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == f'ok {len(modules)}'
@@ -43,4 +47,4 @@ def test_no_module_under_core_imports_rclpy():
 def test_the_block_catches_an_rclpy_import():
     """The check above can fail: importing rclpy under the same hook is refused."""
     out = subprocess.run([sys.executable, '-c', SCRIPT, 'rclpy'], capture_output=True, text=True)
-    assert out.returncode != 0 and 'core imported rclpy' in out.stderr
+    assert out.returncode != 0 and 'core or io imported rclpy' in out.stderr

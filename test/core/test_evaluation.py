@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cloe_ros.core.evaluation import Run, status_calibration
+from cloe_ros.core.evaluation import Run, score_positions, status_calibration
 from cloe_ros.core.identifier import CONVERGING, IDENTIFIED, N_ROWS, ROW_NAMES
 from cloe_ros.core.model import BLOCK_SLICES, BLOCKS
 
@@ -48,3 +48,33 @@ def test_status_calibration_counts_identified_estimates_that_are_wrong():
 def test_status_calibration_needs_an_identifier():
     with pytest.raises(ValueError, match='no identifier status'):
         status_calibration(hand_run(np.zeros((3, 16)), None), np.ones(16))
+
+
+def test_score_positions_against_closed_form():
+    """Vehicles flying 1 m/s along x from the origin, predicted off by known amounts in y: the
+    model's RMSE, the exact constant-velocity baseline, hold position off by the lead; a missing
+    pose, outcome or start leaves that prediction out of that horizon only (start: of all)."""
+    lead = np.tile([1.0, 2.0], (4, 1))
+    start = np.zeros((4, 12))
+    start[:, 1] = 1.0  # vx
+    start[3, 6] = np.nan  # no start state: never scored
+    actual = np.zeros((4, 2, 3))
+    actual[..., 0] = lead
+    predicted = actual.copy()
+    predicted[..., 1] = [[0.3, 0.6], [0.4, 0.8], [np.nan, 1.0], [0.0, 0.0]]
+    actual[1, 1] = np.nan  # the second vehicle's outcome at 2 s is unknown
+    score = score_positions((1.0, 2.0), predicted, actual, start, lead, actual.copy(),
+                            withheld=5, t_from=1.0, t_to=9.0)  # fmt: skip
+    expected = [np.sqrt((0.3**2 + 0.4**2) / 2), np.sqrt((0.6**2 + 1.0**2) / 2)]
+    np.testing.assert_allclose(score.model, expected, rtol=1e-12)
+    assert score.count.tolist() == [2, 2]
+    np.testing.assert_allclose(score.constant_velocity, 0.0, atol=1e-15)
+    np.testing.assert_allclose(score.hold_position, [1.0, 2.0], rtol=1e-12)
+    np.testing.assert_allclose(score.true_model, 0.0, atol=1e-15)
+    np.testing.assert_allclose(score.model_per_axis[:, 1], expected, rtol=1e-12)
+    np.testing.assert_allclose(score.model_per_axis[:, [0, 2]], 0.0, atol=1e-15)
+    assert (score.withheld, score.t_from, score.t_to) == (5, 1.0, 9.0)
+    none = score_positions((1.0, 2.0), np.zeros((0, 2, 3)), np.zeros((0, 2, 3)),
+                           np.zeros((0, 12)), np.zeros((0, 2)))  # fmt: skip
+    assert none.count.tolist() == [0, 0] and np.isnan(none.model).all()
+    assert none.true_model is None and np.isnan(none.model_per_axis).all()

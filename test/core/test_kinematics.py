@@ -11,6 +11,9 @@ from cloe_ros.core.kinematics import (
     euler_to_rotation,
     odometry_to_state,
     quaternion_to_euler,
+    quaternion_to_euler_one,
+    quaternion_yaw,
+    quaternion_yaw_one,
     state_to_odometry,
     unwrap_near,
     wrap_angle,
@@ -118,3 +121,16 @@ def test_the_tilt_check_reads_roll_and_pitch_of_a_quaternion_not_quite_unit():
         euler = rng.uniform([-3.1, -1.5, -3.1], [3.1, 1.5, 3.1])
         q = euler_to_quaternion(*euler) * rng.uniform(0.95, 1.05)
         np.testing.assert_allclose(roll_pitch_one(q), euler[:2], atol=1e-9)
+
+
+def test_one_quaternion_to_euler_equals_the_array_version():
+    """The scalar conversion (the engine's reference yaw, the odometry fast path) and the batched
+    one agree, yaw across +-pi and pitch near +-pi/2 included."""
+    rng = np.random.default_rng(11)
+    euler = rng.uniform([-3.14, -1.57, -3.14], [3.14, 1.57, 3.14], size=(300, 3))
+    q = euler_to_quaternion(euler[:, 0], euler[:, 1], euler[:, 2])
+    batched = quaternion_to_euler(q)
+    for qi, expected, yaw in zip(q, batched, quaternion_yaw(q)):
+        np.testing.assert_allclose(quaternion_to_euler_one(qi), expected, atol=1e-12)
+        assert abs(quaternion_yaw_one(qi) - yaw) <= 1e-12
+    np.testing.assert_allclose(batched, euler, atol=1e-6)

@@ -8,7 +8,6 @@ import pytest
 from cloe_ros.core.metrics import (
     itae,
     parameter_error,
-    position_rmse,
     rmse_norm,
     subsystem_itae,
     subsystem_rmse,
@@ -65,8 +64,3 @@ def test_parameter_error_per_block():
     assert err['x_theta'] == pytest.approx(0.1)
     assert err['y_phi'] == err['psi'] == err['z'] == 0.0
     assert err['all'] == pytest.approx(0.1 * np.linalg.norm(truth[:5]) / np.linalg.norm(truth))
-
-
-def test_position_rmse_skips_nan():
-    pred = np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [3.0, 4.0, 0.0]])
-    assert position_rmse(pred, np.zeros((3, 3))) == pytest.approx(np.sqrt(12.5))

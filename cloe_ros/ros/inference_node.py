@@ -22,7 +22,7 @@ from dataclasses import replace
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
-from rcl_interfaces.msg import FloatingPointRange
+from rcl_interfaces.msg import ParameterType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
@@ -33,7 +33,7 @@ from cloe_ros.core.anticipation import CHANNELS
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.io import messages
-from cloe_ros.io.config import ALGORITHMS, DEFAULTS, RANGES, SettingsError, build_configs
+from cloe_ros.io.config import DEFAULTS, SettingsError, build_configs, node_values
 from cloe_ros.io.messages import MessageError, Status, encode_diagnostics
 from cloe_ros.io.outputs import OutputConfig, OutputEncoder
 from cloe_ros.ros.common import (
@@ -48,6 +48,7 @@ from cloe_ros.ros.common import (
     run_node,
     vehicle_topic,
 )
+from cloe_ros.settings import RESTARTS, SETTINGS, engine_settings
 
 #: The message class of each output type.
 OUTPUT_TYPES = {
@@ -56,8 +57,6 @@ OUTPUT_TYPES = {
     messages.PATH: Path,
     messages.MARKER_ARRAY: MarkerArray,
 }
-#: Parameters whose change restarts the estimators (the identified model is forgotten).
-RESTARTING = ('algorithm', 'rate')
 #: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
 STALE_AFTER = 2.0
 
@@ -71,8 +70,8 @@ class InferenceNode(Node):
         self.engine_config, self.output_config = self._configs(self._values())
         vehicles = check_vehicles(declared['vehicles'])
         self.vehicles = vehicles or ['']
-        reliable = self.get_parameter('qos_reliability').value == 'reliable'
-        depth = self.get_parameter('qos_depth').value
+        reliable = declared['qos_reliability'] == 'reliable'
+        depth = declared['qos_depth']
         in_qos = qos(reliable=reliable, depth=depth)
         out_qos = qos(reliable=True, depth=depth)
         self.engines: dict[str, VehicleEngine] = {}
@@ -104,11 +103,13 @@ class InferenceNode(Node):
             DiagnosticArray, '/diagnostics', qos(depth=10)
         )
         self._diag_timer = self.create_timer(
-            self.get_parameter('diagnostics_period').value, self._publish_diagnostics
+            declared['diagnostics_period'], self._publish_diagnostics
         )
         self._last_diag = (time.monotonic(), {v: 0 for v in self.vehicles})
         self.create_service(Trigger, '~/reset', self._reset_service)
+        self._applied = self._settings()
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
         self._warned: set[tuple[str, str]] = set()
         self._last_rejected: dict[str, str] = {}  # per vehicle: the last rejection, in words
         self._last_estimate: dict[str, object] = {}
@@ -122,112 +123,24 @@ class InferenceNode(Node):
     # ------------------------------------------------------------------------- parameters
 
     def _declare_parameters(self) -> dict:
-        ro = {'read_only': True}
-        p = [
-            ('vehicles', [], describe(
-                'vehicle namespaces, e.g. [/uav1, /uav2]; empty: one vehicle, topics relative to '
-                'the node namespace', parameter_type=STRING_ARRAY, **ro)),
-            ('algorithm', DEFAULTS['algorithm'], describe(
-                'estimator: ' + ' | '.join(ALGORITHMS) + ' (cloe and cloe_sm as the paper states '
-                'them; cloe_iv identifies with instrumental variables); changing it restarts',
-                additional_constraints='one of ' + ', '.join(ALGORITHMS))),
-            ('rate', DEFAULTS['rate'], describe(
-                'estimator steps per second of message time, Hz (changing it restarts)')),
-            ('gamma_theta', DEFAULTS['gamma_theta'], describe(
-                'cloe, cloe_sm: identifier gain Gamma (paper: 400)')),
-            ('gamma_l', DEFAULTS['gamma_l'], describe(
-                'adaptive observer-gain rate gamma (paper: 400)')),
-            ('l_initial', DEFAULTS['l_initial'], describe(
-                'initial observer gain L(0), 1/s (cloe_iv: at least l_min)')),
-            ('sm_gains', DEFAULTS['sm_gains'], describe(
-                'sliding-mode gains alpha, one per state (paper Table 1)',
-                additional_constraints='12 values >= 0')),
-            ('sm_exponents', DEFAULTS['sm_exponents'], describe(
-                'sliding-mode exponents p, one per state',
-                additional_constraints='12 values in [0, 1)')),
-            ('reference_timeout', DEFAULTS['reference_timeout'], describe(
-                'odometry lead (s) after which a missing newer reference is held')),
-            ('max_gap', DEFAULTS['max_gap'], describe(
-                'odometry gap (s) treated as a time jump: the estimator re-initialises')),
-            ('world_frame', DEFAULTS['world_frame'], describe(
-                'required header.frame_id of odom and reference; empty: the first one seen',
-                **ro)),
-            ('output_ns', DEFAULTS['output_ns'], describe(
-                'namespace of the outputs under each vehicle namespace', **ro)),
-            ('parameters_rate', DEFAULTS['parameters_rate'], describe(
-                'parameters messages per second of message time, Hz')),
-            ('prediction_horizon', DEFAULTS['prediction_horizon'], describe(
-                'anticipated path length, s (0: no predictions)',
-                **ro)),
-            ('prediction_step', DEFAULTS['prediction_step'], describe(
-                'spacing of the predicted poses, s', **ro)),
-            ('prediction_rate', DEFAULTS['prediction_rate'], describe(
-                'predictions per second of message time, Hz',
-                **ro)),
-            ('prediction_disturbance_time', DEFAULTS['prediction_disturbance_time'], describe(
-                'window of the recent model-error fit and its fading time over the horizon, s '
-                '(0: steady-state offsets only)', **ro)),
-            ('l_leak', DEFAULTS['l_leak'], describe(
-                'cloe_iv: leakage of the observer gain L, 1/s')),
-            ('gamma_d', DEFAULTS['gamma_d'], describe(
-                "cloe_iv: rate of the observer's model-error state on the unknown rows, 1/s^2")),
-            ('l_min', DEFAULTS['l_min'], describe(
-                'cloe_iv: lower bound of L, 1/s')),
-            ('l_max', DEFAULTS['l_max'], describe(
-                'cloe_iv: upper bound of L, 1/s')),
-            ('id_bandwidth', DEFAULTS['id_bandwidth'], describe(
-                "cloe_iv: identifier's filter bandwidth, rad/s")),
-            ('id_highpass', DEFAULTS['id_highpass'], describe(
-                "cloe_iv: identifier's high-pass corner, rad/s")),
-            ('id_window', DEFAULTS['id_window'], describe(
-                'cloe_iv: forgetting time constant of the estimate, s')),
-            ('id_excitation_window', DEFAULTS['id_excitation_window'], describe(
-                'cloe_iv: time constant of the excitation measure, s')),
-            ('id_excitation_threshold', DEFAULTS['id_excitation_threshold'], describe(
-                'cloe_iv: smallest canonical correlation counted as excited')),
-            ('estimate_coupling', DEFAULTS['estimate_coupling'], describe(
-                'cloe_iv: identify the tilt couplings (the paper fixes them at +-g)')),
-            ('ground_altitude', DEFAULTS['ground_altitude'], describe(
-                'cloe_iv: identification pauses while the commanded altitude is at or below '
-                'this, m (below every commanded altitude: never); predictions then do not rely '
-                'on the reference')),
-            ('prediction_intent', DEFAULTS['prediction_intent'], describe(
-                'without a plan, predict where the reference goes from its recent past (else: '
-                'held)', **ro)),
-            ('prediction_guard', DEFAULTS['prediction_guard'], describe(
-                'publish, per horizon, the combination of the closed loop and model-free '
-                'predictors that did best recently (else: the closed loop alone)', **ro)),
-            ('prediction_coverage', DEFAULTS['prediction_coverage'], describe(
-                'probability the published prediction radius is meant to hold', **ro)),
-            ('reference_trust', DEFAULTS['reference_trust'], describe(
-                'check whether the vehicle tracks each reference channel; a channel it does '
-                'not track is replaced by the reference its motion implies (else: always '
-                'trusted)', **ro)),
-            ('reference_trust_ratio', DEFAULTS['reference_trust_ratio'], describe(
-                'a reference channel is not tracked when the model driven by it misses the last '
-                'second by more than this many times constant velocity (and by more than '
-                'reference_trust_floor)', **ro)),
-            ('reference_trust_floor', DEFAULTS['reference_trust_floor'], describe(
-                'the least miss of the model driven by a reference channel over the last second '
-                'that makes it not tracked, m (rad for yaw)', **ro)),
-            ('diagnostics_period', 1.0, describe(
-                '/diagnostics period, s', float_range=(0.05, 60.0), **ro)),
-            ('qos_reliability', 'reliable', describe(
-                'QoS reliability of the subscriptions: reliable | best_effort', **ro,
-                additional_constraints='reliable or best_effort')),
-            ('qos_depth', 1000, describe(
-                'QoS history depth of the subscriptions (10 s of 100 Hz odometry: a node starved '
-                'of CPU for a moment loses nothing)', int_range=(1, 100000), **ro)),
-        ]  # fmt: skip
-        for name, _, d in p:  # one range per setting, the one `cloe infer` checks too
-            if name in RANGES:
-                low, high = RANGES[name]
-                d.floating_point_range = [FloatingPointRange(from_value=low, to_value=high)]
-        values = {name: declare(self, name, default, d) for name, default, d in p}
-        if values['qos_reliability'] not in ('reliable', 'best_effort'):
-            reason = f'must be reliable or best_effort, got {values["qos_reliability"]!r}'
-            raise ParameterError(reason, 'qos_reliability')
-        return values
+        """Declare every setting of :data:`cloe_ros.settings.SETTINGS` (type, range, read-only,
+        description); returns the node's own settings, checked."""
+        values = {}
+        for s in SETTINGS.values():
+            d = describe(
+                s.full_description(),
+                read_only=s.read_only,
+                float_range=s.range if s.kind is float else None,
+                int_range=s.range if s.kind is int else None,
+                additional_constraints=s.constraints(),
+                parameter_type=STRING_ARRAY if s.kind is list else ParameterType.PARAMETER_NOT_SET,
+            )
+            default = list(s.default) if isinstance(s.default, (tuple, list)) else s.default
+            values[s.name] = declare(self, s.name, default, d)
+        try:
+            return node_values(values)
+        except SettingsError as err:
+            raise ParameterError(err.reason, err.name) from err
 
     def _values(self, overrides: dict | None = None) -> dict:
         values = {n: self.get_parameter(n).value for n in DEFAULTS}
@@ -242,15 +155,30 @@ class InferenceNode(Node):
         except SettingsError as err:
             raise ParameterError(err.reason, err.name) from err
 
+    def _settings(self) -> dict:
+        """The engine's settings as the parameters hold them now, each of its own type."""
+        return {s.name: s.coerce(self.get_parameter(s.name).value) for s in engine_settings()}
+
     def _on_set_parameters(self, params):
-        changes = {p.name: p.value for p in params}
+        """Validate: refuse, with the reason, changes the engine cannot use (applied after they
+        are set, in :meth:`_apply_parameters`)."""
         try:
-            engine_config, output_config = build_configs(self._values(changes))
+            build_configs(self._values({p.name: p.value for p in params}))
         except SettingsError as err:
             return refuse(str(err))
-        restart = any(
-            n in changes and changes[n] != self.get_parameter(n).value for n in RESTARTING
-        )
+        return accept()
+
+    def _apply_parameters(self, params) -> None:
+        """Apply what has been set, as each setting's ``on_change`` says: a change of a
+        restarting setting restarts the estimators; every other one applies at once (the
+        engine itself restarts cloe_iv for a change of its identifier's settings)."""
+        engine_config, output_config = self._configs(self._values())
+        settings = self._settings()
+        changed = {n for n, v in settings.items() if v != self._applied.get(n)}
+        self._applied = settings
+        if not changed:
+            return
+        restart = any(SETTINGS[n].on_change == RESTARTS for n in changed)
         self.engine_config, self.output_config = engine_config, output_config
         for v, engine in self.engines.items():
             if restart:
@@ -260,14 +188,13 @@ class InferenceNode(Node):
                 # identifier setting of cloe_iv changed (VehicleEngine.update_estimator)
                 engine.config = replace(engine_config, estimator=engine.config.estimator)
                 engine.update_estimator(engine_config.estimator)
-            if 'parameters_rate' in changes:
+            if 'parameters_rate' in changed:
                 self.encoders[v] = OutputEncoder(output_config, v, self.encoders[v].predictions)
         if restart:
             self.get_logger().info(
                 f'restarted the estimators: {engine_config.estimator.algorithm} at '
                 f'{engine_config.rate:g} Hz'
             )
-        return accept()
 
     def _make_vehicle(self, vehicle: str, keep_stats: bool = False) -> None:
         old = self.engines.get(vehicle)

@@ -301,7 +301,7 @@ def test_reset_service_forgets_the_model(context):
         ('sm_gains', [0.1] * 3, 'needs 12 numbers, one per state, got 3'),
         ('l_min', 60.0, 'must be at most l_max (50), got 60.0'),
         ('vehicles', ['/a b'], "vehicle namespace '/a b' is not valid"),
-        ('qos_reliability', 'sometimes', "must be reliable or best_effort, got 'sometimes'"),
+        ('qos_reliability', 'sometimes', "'sometimes' is not one of reliable, best_effort"),
     ],
 )
 def test_invalid_startup_parameters_are_refused_with_a_reason(context, name, value, reason):

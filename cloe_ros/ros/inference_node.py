@@ -16,6 +16,7 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import replace
 
@@ -57,6 +58,8 @@ OUTPUT_TYPES = {
     messages.PATH: Path,
     messages.MARKER_ARRAY: MarkerArray,
 }
+#: The inputs of a vehicle, each counted in /diagnostics when DDS loses some.
+INPUTS = ('odom', 'reference', 'reference_plan')
 #: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
 STALE_AFTER = 2.0
 
@@ -80,25 +83,10 @@ class InferenceNode(Node):
         self.malformed: dict[str, int] = {}
         self.vehicle_ns: dict[str, str] = {}
         self._odom_heard: dict[str, float] = {}  # wall (monotonic) time of the last odometry
+        self.lost: dict[str, dict[str, int]] = {}  # per vehicle and input: DDS message_lost
+        self._in_qos, self._out_qos = in_qos, out_qos
         for v in self.vehicles:
-            self._make_vehicle(v)
-            events = SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos(v))
-            self.create_subscription(
-                Odometry, vehicle_topic(v, 'odom'), self._odometry_callback(v), in_qos,
-                raw=True, event_callbacks=events,
-            )  # fmt: skip
-            self.create_subscription(
-                PoseStamped, vehicle_topic(v, 'reference'), self._reference_callback(v), in_qos,
-                raw=True, event_callbacks=events,
-            )  # fmt: skip
-            self.create_subscription(
-                Path, vehicle_topic(v, 'reference_plan'), self._plan_callback(v), in_qos,
-                raw=True,
-            )  # fmt: skip
-            for topic, msgtype in self.encoders[v].topics.items():
-                self.publishers_[topic] = self.create_publisher(
-                    OUTPUT_TYPES[msgtype], topic, out_qos
-                )
+            self._add_vehicle(v)
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
         )
@@ -195,6 +183,34 @@ class InferenceNode(Node):
                 f'restarted the estimators: {engine_config.estimator.algorithm} at '
                 f'{engine_config.rate:g} Hz'
             )
+
+    def _add_vehicle(self, v: str) -> None:
+        """Engine, subscriptions and publishers of vehicle ``v``. Every subscription counts the
+        messages DDS reports lost (``message_lost``: overwritten in the publisher's history
+        before this node took them, or gaps seen by a best-effort subscription)."""
+        self._make_vehicle(v)
+        self.lost[v] = dict.fromkeys(INPUTS, 0)
+        callbacks = {
+            'odom': (Odometry, self._odometry_callback(v)),
+            'reference': (PoseStamped, self._reference_callback(v)),
+            'reference_plan': (Path, self._plan_callback(v)),
+        }
+        for name, (msgtype, callback) in callbacks.items():
+            events = SubscriptionEventCallbacks(
+                incompatible_qos=self._incompatible_qos(v),
+                message_lost=functools.partial(self._on_lost, v, name),
+            )
+            self.create_subscription(
+                msgtype, vehicle_topic(v, name), callback, self._in_qos, raw=True,
+                event_callbacks=events,
+            )  # fmt: skip
+        for topic, msgtype in self.encoders[v].topics.items():
+            self.publishers_[topic] = self.create_publisher(
+                OUTPUT_TYPES[msgtype], topic, self._out_qos
+            )
+
+    def _on_lost(self, vehicle: str, name: str, info) -> None:
+        self.lost[vehicle][name] += int(info.total_count_change)
 
     def _make_vehicle(self, vehicle: str, keep_stats: bool = False) -> None:
         old = self.engines.get(vehicle)
@@ -350,6 +366,10 @@ class InferenceNode(Node):
             message = f'running; {rejected} input(s) rejected, the last: {last}'
         else:
             level, message = messages.OK, 'running'
+        lost = self.lost[vehicle]
+        if any(lost.values()):
+            level = max(level, messages.WARN)
+            message += '; lost in DDS: ' + ', '.join(f'{n} {k}' for k, n in lost.items() if n)
         heard = self._odom_heard.get(vehicle)
         silent = None if heard is None else time.monotonic() - heard
         if engine.started and silent is not None and silent > STALE_AFTER:
@@ -383,6 +403,7 @@ class InferenceNode(Node):
             ('reference_accepted', str(s.reference_accepted)),
             ('rejected', str(rejected)),
             ('malformed', str(self.malformed[vehicle])),
+            *[(f'{name}_lost', str(n)) for name, n in lost.items()],
             *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
             ('time_jumps', str(s.time_jumps)),
             ('resets', str(s.resets)),

@@ -214,7 +214,20 @@ _RO = {'read_only': True}
 SETTINGS: dict[str, Setting] = {s.name: s for s in (
     # -- which vehicles ------------------------------------------------------------------------
     Setting('vehicles', [], 'vehicle namespaces, e.g. [/uav1, /uav2]; empty: one vehicle, topics '
-            'relative to the node namespace', **_RO),
+            'relative to the node namespace (unless discover)', **_RO),
+    Setting('discover', False, 'also infer every namespace that publishes both <ns>/odom and '
+            '<ns>/reference, including vehicles that appear later (the ROS graph is polled '
+            'every discovery_period)', **_RO),
+    Setting('shard_index', 0, 'this node infers the vehicles whose namespace hashes to it: '
+            'crc32(namespace) mod shard_count == shard_index (listed and discovered alike)',
+            range=(0, 9999), **_RO),
+    Setting('shard_count', 1, 'number of nodes sharing the vehicles (see shard_index); 1: all '
+            'vehicles', range=(1, 10000), **_RO),
+    Setting('discovery_period', 1.0, 'period of the ROS graph poll (discovery, and the check that '
+            'every vehicle has publishers), s of wall time', range=(0.05, 60.0), **_RO),
+    Setting('publisher_timeout', 5.0, 'a vehicle without a publisher of odom or reference this '
+            'long after the start (or after its publishers left) gets a warning, s of wall time',
+            range=(0.1, 3600.0), **_RO),
     # -- the estimator --------------------------------------------------------------------------
     Setting('algorithm', 'cloe_iv', 'estimator: cloe, cloe_sm or cloe_iv (cloe and cloe_sm as the '
             'paper states them; cloe_iv identifies with instrumental variables)',

@@ -24,6 +24,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import ParameterType
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
@@ -49,6 +50,7 @@ from cloe_ros.ros.common import (
     run_node,
     vehicle_topic,
 )
+from cloe_ros.ros.fleet import check_shard, graph_namespaces, shard_of
 from cloe_ros.settings import RESTARTS, SETTINGS, engine_settings
 
 #: The message class of each output type.
@@ -71,8 +73,14 @@ class InferenceNode(Node):
         super().__init__('cloe_inference', **kwargs)
         declared = self._declare_parameters()
         self.engine_config, self.output_config = self._configs(self._values())
-        vehicles = check_vehicles(declared['vehicles'])
-        self.vehicles = vehicles or ['']
+        self.listed = check_vehicles(declared['vehicles'])
+        self.discover = declared['discover']
+        self.shard_index, self.shard_count = declared['shard_index'], declared['shard_count']
+        reason = check_shard(self.shard_index, self.shard_count)
+        if reason:
+            raise ParameterError(reason, 'shard_index')
+        self.publisher_timeout = declared['publisher_timeout']
+        self.vehicles: list[str] = []
         reliable = declared['qos_reliability'] == 'reliable'
         depth = declared['qos_depth']
         in_qos = qos(reliable=reliable, depth=depth)
@@ -85,8 +93,19 @@ class InferenceNode(Node):
         self._odom_heard: dict[str, float] = {}  # wall (monotonic) time of the last odometry
         self.lost: dict[str, dict[str, int]] = {}  # per vehicle and input: DDS message_lost
         self._in_qos, self._out_qos = in_qos, out_qos
-        for v in self.vehicles:
-            self._add_vehicle(v)
+        self._started = time.monotonic()
+        # per vehicle: the inputs without a publisher, and since when (wall, monotonic)
+        self._missing: dict[str, list[str]] = {}
+        self._missing_since: dict[str, float] = {}
+        self._warned_missing: set[str] = set()
+        self._discovered: set[str] = set()
+        for v in self.listed or ([] if self.discover else ['']):
+            if self._ours(self._namespace(v)):  # (a listed vehicle of another shard: not ours)
+                self._add_vehicle(v)
+        self._graph_timer = self.create_timer(
+            declared['discovery_period'], self._poll_graph,
+            clock=Clock(clock_type=ClockType.STEADY_TIME),
+        )  # fmt: skip
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
         )
@@ -102,10 +121,19 @@ class InferenceNode(Node):
         self._last_rejected: dict[str, str] = {}  # per vehicle: the last rejection, in words
         self._last_estimate: dict[str, object] = {}
         self._last_prediction_note: dict[str, str] = {}
-        names = ', '.join(v or '/' for v in self.vehicles)
+        names = ', '.join(self.vehicle_ns[v] for v in self.vehicles) or 'no vehicle yet'
+        notes = []
+        if self.shard_count > 1:
+            notes.append(
+                f'shard {self.shard_index} of {self.shard_count}'
+                + (f': {len(self.vehicles)} of the {len(self.listed)} listed vehicles'
+                   if self.listed else '')
+            )  # fmt: skip
+        if self.discover:
+            notes.append('discovering vehicles')
         self.get_logger().info(
             f'ready: {self.engine_config.estimator.algorithm} at {self.engine_config.rate:g} Hz '
-            f'for {names}'
+            f'for {names}' + (f' ({"; ".join(notes)})' if notes else '')
         )
 
     # ------------------------------------------------------------------------- parameters
@@ -189,7 +217,10 @@ class InferenceNode(Node):
         messages DDS reports lost (``message_lost``: overwritten in the publisher's history
         before this node took them, or gaps seen by a best-effort subscription)."""
         self._make_vehicle(v)
+        self.vehicles.append(v)
         self.lost[v] = dict.fromkeys(INPUTS, 0)
+        self._missing[v] = []
+        self._missing_since[v] = time.monotonic()  # until its publishers are seen
         callbacks = {
             'odom': (Odometry, self._odometry_callback(v)),
             'reference': (PoseStamped, self._reference_callback(v)),
@@ -223,10 +254,78 @@ class InferenceNode(Node):
             self.output_config, vehicle, self.engine_config.prediction.enabled
         )
         self.malformed.setdefault(vehicle, 0)
-        # the vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics
-        # reports, and how a report of the recording finds which algorithm made each output
+        self.vehicle_ns[vehicle] = self._namespace(vehicle)
+
+    def _namespace(self, vehicle: str) -> str:
+        """The vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics
+        reports, how a report of the recording finds which algorithm made each output, and what
+        the shards hash."""
         odom = self.resolve_topic_name(vehicle_topic(vehicle, 'odom'), only_expand=True)
-        self.vehicle_ns[vehicle] = odom[: -len('/odom')] or '/'
+        return odom[: -len('/odom')] or '/'
+
+    def _ours(self, namespace: str) -> bool:
+        """Whether the vehicle of ``namespace`` belongs to this node's shard."""
+        return shard_of(namespace, self.shard_count) == self.shard_index
+
+    # ---------------------------------------------------------------------------- the graph
+
+    def _poll_graph(self) -> None:
+        """On a steady-clock timer: take up the vehicles discovery finds (``discover``), and
+        check that every vehicle has publishers of odom and reference; warn of a vehicle without
+        them for ``publisher_timeout`` (with a hint when the un-namespaced vehicle waits while
+        namespaced ones fly)."""
+        now = time.monotonic()
+        topics = self.get_topic_names_and_types()
+        if self.discover:
+            known = {self.vehicle_ns[v] for v in self.vehicles}
+            for ns in graph_namespaces(topics):
+                if ns in known or not self._ours(ns) or self._missing_inputs(ns):
+                    continue
+                if ns == '/' and self.get_namespace() != '/':
+                    continue  # (un-namespaced topics outside the node's namespace: not a vehicle)
+                self._add_vehicle('' if ns == '/' else ns)
+                self._discovered.add('' if ns == '/' else ns)
+                shard = f' (shard {self.shard_index})' if self.shard_count > 1 else ''
+                self.get_logger().info(f'discovered {ns}: inferring it{shard}')
+        for v in self.vehicles:
+            ns = self.vehicle_ns[v]
+            missing = self._missing[v] = self._missing_inputs(ns)
+            if not missing:
+                self._missing_since.pop(v, None)
+                if v in self._warned_missing:
+                    self._warned_missing.discard(v)
+                    self.get_logger().info(f'{ns}: odom and reference are published again')
+                continue
+            since = self._missing_since.setdefault(v, now)
+            if now - since < self.publisher_timeout or v in self._warned_missing:
+                continue
+            self._warned_missing.add(v)
+            self.get_logger().warning(self._missing_warning(v, missing, now - since, topics))
+
+    def _missing_inputs(self, namespace: str) -> list[str]:
+        """The inputs of the vehicle of ``namespace`` that nothing publishes."""
+        base = namespace.rstrip('/')
+        return [n for n in ('odom', 'reference') if not self.count_publishers(f'{base}/{n}')]
+
+    def _missing_warning(self, v: str, missing: list[str], for_s: float, topics) -> str:
+        ns = self.vehicle_ns[v]
+        base = ns.rstrip('/')
+        what = ' and '.join(f'{base}/{n}' for n in missing)
+        text = f'{ns}: nothing publishes {what} (for {for_s:.0f} s)'
+        if v in self._discovered:
+            return text + ': the vehicle fell silent'
+        flying = [n for n in graph_namespaces(topics)
+                  if n != ns and not self._missing_inputs(n)]  # fmt: skip
+        if not self.listed and not self.discover and flying:
+            shown = ', '.join(flying[:5]) + (', ...' if len(flying) > 5 else '')
+            return (
+                f'{text}; odom and reference are published under {shown}: set '
+                f'vehicles:=[{", ".join(flying)}] or discover:=true'
+            )
+        return text + (
+            f'; is {ns} the namespace of a vehicle that flies? (vehicles: '
+            f'[{", ".join(self.listed)}]; discover:=true takes the namespaces that publish)'
+        )
 
     # -------------------------------------------------------------------------- callbacks
 
@@ -370,6 +469,12 @@ class InferenceNode(Node):
         if any(lost.values()):
             level = max(level, messages.WARN)
             message += '; lost in DDS: ' + ', '.join(f'{n} {k}' for k, n in lost.items() if n)
+        missing = self._missing.get(vehicle, [])
+        since = self._missing_since.get(vehicle)
+        if missing and since is not None and time.monotonic() - since >= self.publisher_timeout:
+            level = max(level, messages.WARN)
+            message += (f'; nothing publishes {" and ".join(missing)} for '
+                        f'{time.monotonic() - since:.0f} s')  # fmt: skip
         heard = self._odom_heard.get(vehicle)
         silent = None if heard is None else time.monotonic() - heard
         if engine.started and silent is not None and silent > STALE_AFTER:
@@ -404,6 +509,7 @@ class InferenceNode(Node):
             ('rejected', str(rejected)),
             ('malformed', str(self.malformed[vehicle])),
             *[(f'{name}_lost', str(n)) for name, n in lost.items()],
+            ('publishers_missing', ', '.join(missing)),
             *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
             ('time_jumps', str(s.time_jumps)),
             ('resets', str(s.resets)),
@@ -417,6 +523,31 @@ class InferenceNode(Node):
         ns = self.vehicle_ns[vehicle]
         return Status(level, f'{self.get_name()}: {ns}', message, ns, tuple(values))
 
+    def node_status(self) -> Status:
+        """The node's own status: which vehicles it infers (its shard), and those without
+        publishers for ``publisher_timeout``."""
+        now = time.monotonic()
+        silent = [self.vehicle_ns[v] for v in self.vehicles if self._missing.get(v)
+                  and now - self._missing_since.get(v, now) >= self.publisher_timeout]  # fmt: skip
+        names = [self.vehicle_ns[v] for v in self.vehicles]
+        message = f'{len(names)} vehicle(s)'
+        if self.shard_count > 1:
+            message += f', shard {self.shard_index} of {self.shard_count}'
+        if self.discover:
+            message += ', discovering'
+        if silent:
+            message += '; without publishers: ' + ', '.join(silent)
+        values = (
+            ('vehicles', ' '.join(names)),
+            ('vehicle_count', str(len(names))),
+            ('discover', str(self.discover).lower()),
+            ('shard_index', str(self.shard_index)),
+            ('shard_count', str(self.shard_count)),
+            ('without_publishers', ' '.join(silent)),
+        )
+        level = messages.WARN if silent else messages.OK
+        return Status(level, self.get_name(), message, self.get_fully_qualified_name(), values)
+
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
         t_prev, steps_prev = self._last_diag
@@ -427,6 +558,7 @@ class InferenceNode(Node):
                 self.vehicle_status(v, (engine.stats.steps - steps_prev.get(v, 0)) / dt)
             )
         self._last_diag = (now, {v: e.stats.steps for v, e in self.engines.items()})
+        statuses.append(self.node_status())
         stamp = self.get_clock().now().nanoseconds
         self.diagnostics_pub.publish(encode_diagnostics(stamp, statuses))
 

@@ -40,9 +40,9 @@ SESSIONS = {
     'demo.launch.yaml': ('viewers/rviz/cloe_demo.rviz', 'viewers/foxglove/cloe_demo.json'),
     'lab.launch.yaml': ('viewers/rviz/cloe_lab.rviz', 'viewers/foxglove/cloe_lab.json'),
 }
-#: Parameters a launch file sets that a node does not declare yet: cloe_inference's
-#: ``discover`` (discovery of vehicles, being added to the inference node).
-PENDING_PARAMETERS = {('cloe_inference', 'discover')}
+#: Parameters a launch file sets that a node does not declare yet (none: cloe_inference's
+#: ``discover`` is declared now).
+PENDING_PARAMETERS: set[tuple[str, str]] = set()
 
 NODE_KEYS = {'pkg', 'exec', 'name', 'namespace', 'output', 'param', 'if', 'unless'}
 SUBSTITUTION = re.compile(r'\$\((\w[\w-]*)\s*([^)]*)\)')
@@ -305,6 +305,8 @@ def test_the_lab_launch_takes_its_vehicles_from_one_argument(evaluations):
     for args, built in evaluations['lab.launch.yaml']:
         vehicles = yaml.safe_load(args['vehicles'])
         assert built.parameters['cloe_inference']['vehicles'] == vehicles
+        # the argument reaches the node's parameter of the same name (a bool)
+        assert built.parameters['cloe_inference']['discover'] is truthy(args['discover'])
         for v in vehicles:
             assert {f'{v}/odom', f'{v}/reference'} <= built.subscribed
             assert f'{v}/cloe/state' in built.published

@@ -385,8 +385,9 @@ def _diagnostics(bag: Path, topics: dict[str, str]) -> dict[str, dict[str, str]]
             except messages.MessageError:
                 continue
             for s in statuses:
-                if s.name.startswith('cloe_inference'):
-                    values = dict(s.values)
+                values = dict(s.values)
+                # a vehicle's status (the node's own one, named after it, has no algorithm)
+                if s.name.startswith('cloe_inference') and 'algorithm' in values:
                     key = f'{s.name} ({values.get("algorithm", "?")})'
                     last[key] = values
     return last

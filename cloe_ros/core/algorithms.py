@@ -10,16 +10,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloe_ros.settings import ALGORITHMS
+
 if TYPE_CHECKING:
     from cloe_ros.core.cloe_iv import CloeIvEstimator
     from cloe_ros.core.estimator import CloeEstimator, EstimatorConfig
 
 __all__ = ['ALGORITHMS', 'PAPER_ALGORITHMS', 'make_estimator']
 
-#: Algorithms implemented exactly as the paper states them.
+#: Algorithms implemented exactly as the paper states them (``ALGORITHMS``, a setting's choices,
+#: adds CLOE-SM with the IV identifier of cloe_ros.core.cloe_iv).
 PAPER_ALGORITHMS = ('cloe', 'cloe_sm')
-#: Every algorithm: the paper's two, and CLOE-SM with the IV identifier (cloe_ros.core.cloe_iv).
-ALGORITHMS = (*PAPER_ALGORITHMS, 'cloe_iv')
 
 
 def make_estimator(

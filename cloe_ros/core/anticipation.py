@@ -53,6 +53,7 @@ from cloe_ros.core.model import (
     system_matrices,
 )
 from cloe_ros.errors import ConfigError
+from cloe_ros.settings import check_fields, default
 
 #: Reference channels, in the order of ``r = [x_d, y_d, psi_d, z_d]``, and the state index of the
 #: position (or yaw) each commands.
@@ -111,30 +112,30 @@ class AnticipationConfig:
 
     """
 
-    intent: bool = True
-    guard: bool = True
-    trust: bool = True
+    intent: bool = default('prediction_intent')
+    guard: bool = default('prediction_guard')
+    trust: bool = default('reference_trust')
     score_time: float = 5.0
     intent_window: float = 3.0
     centroid_window: float = 6.0
-    coverage: float = 0.95
+    coverage: float = default('prediction_coverage')
     trust_horizon: float = 1.0
     trust_time: float = 1.0
     trust_memory: float = 5.0
     trust_hold: float = 60.0
-    trust_ratio: float = 3.0
-    trust_floor: float = 0.3
+    trust_ratio: float = default('reference_trust_ratio')
+    trust_floor: float = default('reference_trust_floor')
     ground_altitude: float = 0.05
     max_speed: float = QUADROTOR_MAX_SPEED
     max_acceleration: float = QUADROTOR_MAX_ACCELERATION
 
     def __post_init__(self) -> None:
+        check_fields(self, 'anticipation')  # the settings' defaults and ranges: cloe_ros.settings
         for name, low, high in (
             ('score_time', 0.1, 1e4), ('intent_window', 0.5, 60.0),
-            ('centroid_window', 0.5, 600.0), ('coverage', 0.5, 0.999),
+            ('centroid_window', 0.5, 600.0),
             ('trust_horizon', 0.2, 10.0), ('trust_time', 0.05, 60.0),
             ('trust_memory', 0.0, 600.0), ('trust_hold', 0.0, 1e6),
-            ('trust_ratio', 1.0, 100.0), ('trust_floor', 0.0, 1e3),
             ('max_speed', 1.0, 1e4), ('max_acceleration', 1.0, 1e4),
         ):  # fmt: skip
             value = getattr(self, name)

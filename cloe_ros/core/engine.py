@@ -64,6 +64,7 @@ from cloe_ros.core.kinematics import (
 from cloe_ros.core.model import QUADROTOR_MAX_RATE, QUADROTOR_MAX_SPEED, unstable_blocks
 from cloe_ros.core.prediction import PredictionConfig, Predictor, plan_references
 from cloe_ros.core.samples import MAX_STAMP_NS, OdometrySample, PathSample, PoseSample
+from cloe_ros.settings import check_fields, default
 
 NS = 1_000_000_000
 
@@ -110,26 +111,21 @@ class EngineConfig:
 
     """
 
-    rate: float = 100.0
+    rate: float = default('rate')
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
-    reference_timeout: float = 0.25
-    max_gap: float = 1.0
-    world_frame: str = ''
+    reference_timeout: float = default('reference_timeout')
+    max_gap: float = default('max_gap')
+    world_frame: str = default('world_frame')
     quaternion_tolerance: float = 0.1
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
     anticipation: AnticipationConfig = field(default_factory=AnticipationConfig)
 
     def __post_init__(self) -> None:
-        checks = (
-            ('rate', self.rate, 1.0, 10000.0),
-            ('reference_timeout', self.reference_timeout, 0.0, 60.0),
-            ('max_gap', self.max_gap, 0.001, 3600.0),
-            ('quaternion_tolerance', self.quaternion_tolerance, 0.0, 1.0),
-        )
-        for name, value, low, high in checks:
-            if not (math.isfinite(value) and low <= value <= high):
-                msg = f'{name} must be within [{low:g}, {high:g}], got {value!r}'
-                raise ConfigError(msg)
+        check_fields(self, 'engine')  # defaults and ranges: cloe_ros.settings
+        tolerance = self.quaternion_tolerance
+        if not (math.isfinite(tolerance) and 0.0 <= tolerance <= 1.0):
+            msg = f'quaternion_tolerance must be within [0, 1], got {tolerance!r}'
+            raise ConfigError(msg)
 
     @property
     def step_ns(self) -> int:

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cloe_ros.core.algorithms import ALGORITHMS
 from cloe_ros.core.identifier import IdentifierConfig
 from cloe_ros.core.model import (
     A_KNOWN,
@@ -43,21 +42,17 @@ from cloe_ros.core.model import (
     check_shape,
 )
 from cloe_ros.errors import ConfigError
+from cloe_ros.settings import (  # noqa: F401 (ALGORITHMS and the SM_* tables: re-exported)
+    ALGORITHMS,
+    SM_EXPONENTS,
+    SM_GAINS_TABLE1,
+    check_fields,
+    default,
+)
 
-
-def _per_state(four_chain: Sequence[float], two_chain: Sequence[float]) -> tuple[float, ...]:
-    values = [0.0] * N_STATES
-    for block in BLOCKS:
-        chain = four_chain if block.order == 4 else two_chain
-        for i, v in zip(block.states, chain):
-            values[i] = float(v)
-    return tuple(values)
-
-
-#: Sliding-mode gains alpha of the paper's Table 1, per state.
-SM_GAINS_TABLE1 = _per_state((0.12, 0.18, 0.24, 0.30), (0.24, 0.30))
-#: Sliding-mode exponents p, decreasing along each chain (docs/method.md), per state.
-SM_EXPONENTS = _per_state((0.75, 0.5, 0.25, 0.0), (0.5, 0.0))
+# ALGORITHMS (the paper's two, and CLOE-SM with the IV identifier of cloe_ros.core.cloe_iv), the
+# sliding-mode gains of the paper's Table 1 and the exponents, per state, are settings:
+# cloe_ros.settings holds them (and every other setting's default and range).
 
 
 @dataclass(frozen=True)
@@ -84,47 +79,25 @@ class EstimatorConfig:
 
     """
 
-    algorithm: str = 'cloe_sm'
-    gamma_theta: float = 400.0
-    gamma_l: float = 400.0
-    l_initial: float = 1.0
+    algorithm: str = default('algorithm')
+    gamma_theta: float = default('gamma_theta')
+    gamma_l: float = default('gamma_l')
+    l_initial: float = default('l_initial')
     theta_initial: tuple[float, ...] | None = None
-    sm_gains: tuple[float, ...] = field(default=SM_GAINS_TABLE1)
-    sm_exponents: tuple[float, ...] = field(default=SM_EXPONENTS)
-    l_leak: float = 0.1
-    gamma_d: float = 400.0
-    l_min: float = 5.0
-    l_max: float = 50.0
+    sm_gains: tuple[float, ...] = field(default=default('sm_gains'))
+    sm_exponents: tuple[float, ...] = field(default=default('sm_exponents'))
+    l_leak: float = default('l_leak')
+    gamma_d: float = default('gamma_d')
+    l_min: float = default('l_min')
+    l_max: float = default('l_max')
     identifier: IdentifierConfig = field(default_factory=IdentifierConfig)
-    ground_altitude: float = 0.05
+    ground_altitude: float = default('ground_altitude')
 
     def __post_init__(self) -> None:
-        if self.algorithm not in ALGORITHMS:
-            msg = f'algorithm {self.algorithm!r} is not one of {", ".join(ALGORITHMS)}'
-            raise ConfigError(msg)
-        if not (np.isfinite(self.l_max) and self.l_max > 0):
-            msg = f'l_max must be finite and > 0, got {self.l_max!r}'
-            raise ConfigError(msg)
-        if not (np.isfinite(self.l_min) and 0 <= self.l_min <= self.l_max):
-            msg = f'l_min must be within [0, l_max = {self.l_max:g}], got {self.l_min!r}'
-            raise ConfigError(msg)
-        if not np.isfinite(self.ground_altitude):
-            msg = f'ground_altitude must be finite, got {self.ground_altitude!r}'
-            raise ConfigError(msg)
-        for name in ('gamma_theta', 'gamma_l', 'l_initial', 'l_leak', 'gamma_d'):
-            value = getattr(self, name)
-            if not np.isfinite(value) or value < 0:
-                msg = f'{name} must be finite and >= 0, got {value!r}'
-                raise ConfigError(msg)
-        if len(self.sm_gains) != N_STATES or len(self.sm_exponents) != N_STATES:
-            msg = f'sm_gains and sm_exponents need {N_STATES} entries, one per state'
-            raise ConfigError(msg)
-        if any(g < 0 or not np.isfinite(g) for g in self.sm_gains):
-            msg = 'sm_gains must be finite and >= 0'
-            raise ConfigError(msg)
-        if any(not 0.0 <= p < 1.0 for p in self.sm_exponents):
-            msg = 'sm_exponents must lie in [0, 1)'
-            raise ConfigError(msg)
+        check_fields(self, 'estimator')  # defaults, ranges and choices: cloe_ros.settings
+        if self.l_min > self.l_max:
+            reason = f'must be at most l_max ({self.l_max:g}), got {self.l_min!r}'
+            raise ConfigError(reason, 'l_min')
         if self.theta_initial is not None and len(self.theta_initial) != N_PARAMS:
             msg = f'theta_initial needs {N_PARAMS} entries, got {len(self.theta_initial)}'
             raise ConfigError(msg)

@@ -59,6 +59,7 @@ from cloe_ros.core.model import (
     system_matrices,
 )
 from cloe_ros.errors import ConfigError
+from cloe_ros.settings import check_fields, default
 
 #: Status codes per row, as published.
 NOT_IDENTIFIABLE, CONVERGING, IDENTIFIED = 0, 1, 2
@@ -169,21 +170,20 @@ class IdentifierConfig:
 
     """
 
-    bandwidth: float = 20.0
-    highpass: float = 0.2
-    window: float = 60.0
-    excitation_window: float = 10.0
-    excitation_threshold: float = 0.02
+    bandwidth: float = default('id_bandwidth')
+    highpass: float = default('id_highpass')
+    window: float = default('id_window')
+    excitation_window: float = default('id_excitation_window')
+    excitation_threshold: float = default('id_excitation_threshold')
     aux_period: float = 2.0
     prior_weight: float = 1e-7
-    estimate_coupling: bool = True
+    estimate_coupling: bool = default('estimate_coupling')
     identified_uncertainty: float = 0.05
     unidentifiable_uncertainty: float = 0.3
 
     def __post_init__(self) -> None:
+        check_fields(self, 'identifier')  # the settings' defaults and ranges: cloe_ros.settings
         checks = (
-            ('bandwidth', 0.1, 1000.0), ('highpass', 1e-3, 100.0), ('window', 0.1, 1e6),
-            ('excitation_window', 0.1, 1e6), ('excitation_threshold', 0.0, 1.0),
             ('aux_period', 0.01, 1e4), ('prior_weight', 1e-12, 1e6),
             ('identified_uncertainty', 1e-6, 10.0), ('unidentifiable_uncertainty', 1e-6, 100.0),
         )  # fmt: skip
@@ -193,8 +193,8 @@ class IdentifierConfig:
                 msg = f'{name} must be within [{low:g}, {high:g}], got {value!r}'
                 raise ConfigError(msg)
         if self.highpass >= self.bandwidth:
-            msg = f'highpass ({self.highpass:g}) must be below bandwidth ({self.bandwidth:g})'
-            raise ConfigError(msg)
+            reason = f'must be below id_bandwidth ({self.bandwidth:g}), got {self.highpass!r}'
+            raise ConfigError(reason, 'id_highpass')
         if self.identified_uncertainty >= self.unidentifiable_uncertainty:
             msg = 'identified_uncertainty must be below unidentifiable_uncertainty'
             raise ConfigError(msg)

@@ -33,6 +33,7 @@ from cloe_ros.core.model import (
     unstable_blocks,
 )
 from cloe_ros.errors import ConfigError
+from cloe_ros.settings import check_fields, default
 
 NS = 1_000_000_000
 
@@ -47,28 +48,16 @@ class PredictionConfig:
         horizon, s (0: only steady-state offsets).
     """
 
-    horizon: float = 5.0
-    step: float = 0.1
-    rate: float = 5.0
-    disturbance_time: float = 0.5
+    horizon: float = default('prediction_horizon')
+    step: float = default('prediction_step')
+    rate: float = default('prediction_rate')
+    disturbance_time: float = default('prediction_disturbance_time')
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.horizon) and 0.0 <= self.horizon <= 120.0):
-            msg = f'prediction horizon must be within [0, 120] s, got {self.horizon!r}'
-            raise ConfigError(msg)
-        if not (np.isfinite(self.step) and 0.001 <= self.step <= 10.0):
-            msg = f'prediction step must be within [0.001, 10] s, got {self.step!r}'
-            raise ConfigError(msg)
+        check_fields(self, 'prediction')  # defaults and ranges: cloe_ros.settings
         if self.horizon and self.step > self.horizon:
-            msg = f'prediction step ({self.step:g} s) exceeds the horizon ({self.horizon:g} s)'
-            raise ConfigError(msg)
-        if not (np.isfinite(self.rate) and 0.01 <= self.rate <= 1000.0):
-            msg = f'prediction rate must be within [0.01, 1000] Hz, got {self.rate!r}'
-            raise ConfigError(msg)
-        if not (np.isfinite(self.disturbance_time) and 0.0 <= self.disturbance_time <= 10.0):
-            msg = (f'prediction disturbance time must be within [0, 10] s, got '
-                   f'{self.disturbance_time!r}')  # fmt: skip
-            raise ConfigError(msg)
+            reason = f'must be at most prediction_horizon ({self.horizon:g}), got {self.step!r}'
+            raise ConfigError(reason, 'prediction_step')
 
     @property
     def enabled(self) -> bool:

@@ -20,6 +20,7 @@ from cloe_ros.core.identifier import ROW_NAMES
 from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry_one
 from cloe_ros.core.model import COUPLED_BLOCKS, PARAMETER_NAMES, STATE_NAMES
 from cloe_ros.core.samples import OdometrySample, PathSample
+from cloe_ros.errors import ConfigError
 from cloe_ros.io.errors import OutputConfigError
 from cloe_ros.io.messages import (
     FLOAT64_MULTI_ARRAY,
@@ -32,6 +33,7 @@ from cloe_ros.io.messages import (
     encode_path,
     encode_prediction_markers,
 )
+from cloe_ros.settings import check_fields, default
 
 #: Labels of ``cloe/parameters``: ``layout.dim[i].label`` names ``data[i]``. Theta_hat (16),
 #: L (12), the tilt couplings (2), then per identified row its excitation, relative uncertainty
@@ -74,13 +76,16 @@ class OutputConfig:
 
     """
 
-    output_ns: str = 'cloe'
-    parameters_rate: float = 10.0
+    output_ns: str = default('output_ns')
+    parameters_rate: float = default('parameters_rate')
 
     def __post_init__(self) -> None:
-        if not (0.01 <= self.parameters_rate <= 10000.0):
-            msg = f'must be within [0.01, 10000] Hz, got {self.parameters_rate}'
-            raise OutputConfigError(msg, 'parameters_rate')
+        try:
+            check_fields(self, 'output')  # defaults and ranges: cloe_ros.settings
+        except OutputConfigError:
+            raise
+        except ConfigError as err:
+            raise OutputConfigError(err.reason, err.name) from err
         ns = self.output_ns.strip('/')
         if not ns or any(not (c.isalnum() or c in '_/') for c in ns):
             msg = f'{self.output_ns!r} is not a valid namespace'

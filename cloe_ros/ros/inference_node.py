@@ -16,6 +16,7 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import replace
@@ -23,7 +24,8 @@ from dataclasses import replace
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
-from rcl_interfaces.msg import FloatingPointRange
+from rcl_interfaces.msg import ParameterType
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
@@ -34,7 +36,7 @@ from cloe_ros.core.anticipation import CHANNELS
 from cloe_ros.core.engine import MAX_PLAN_POSES, NS, EngineConfig, VehicleEngine
 from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.io import messages
-from cloe_ros.io.config import ALGORITHMS, DEFAULTS, RANGES, SettingsError, build_configs
+from cloe_ros.io.config import DEFAULTS, SettingsError, build_configs, node_values
 from cloe_ros.io.messages import MessageError, Status, encode_diagnostics
 from cloe_ros.io.outputs import OutputConfig, OutputEncoder
 from cloe_ros.ros.common import (
@@ -49,6 +51,8 @@ from cloe_ros.ros.common import (
     run_node,
     vehicle_topic,
 )
+from cloe_ros.ros.fleet import check_shard, graph_namespaces, shard_of
+from cloe_ros.settings import RESTARTS, SETTINGS, engine_settings
 
 #: The message class of each output type.
 OUTPUT_TYPES = {
@@ -57,8 +61,8 @@ OUTPUT_TYPES = {
     messages.PATH: Path,
     messages.MARKER_ARRAY: MarkerArray,
 }
-#: Parameters whose change restarts the estimators (the identified model is forgotten).
-RESTARTING = ('algorithm', 'rate')
+#: The inputs of a vehicle, each counted in /diagnostics when DDS loses some.
+INPUTS = ('odom', 'reference', 'reference_plan')
 #: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
 STALE_AFTER = 2.0
 
@@ -70,10 +74,16 @@ class InferenceNode(Node):
         super().__init__('cloe_inference', **kwargs)
         declared = self._declare_parameters()
         self.engine_config, self.output_config = self._configs(self._values())
-        vehicles = check_vehicles(declared['vehicles'])
-        self.vehicles = vehicles or ['']
-        reliable = self.get_parameter('qos_reliability').value == 'reliable'
-        depth = self.get_parameter('qos_depth').value
+        self.listed = check_vehicles(declared['vehicles'])
+        self.discover = declared['discover']
+        self.shard_index, self.shard_count = declared['shard_index'], declared['shard_count']
+        reason = check_shard(self.shard_index, self.shard_count)
+        if reason:
+            raise ParameterError(reason, 'shard_index')
+        self.publisher_timeout = declared['publisher_timeout']
+        self.vehicles: list[str] = []
+        reliable = declared['qos_reliability'] == 'reliable'
+        depth = declared['qos_depth']
         in_qos = qos(reliable=reliable, depth=depth)
         out_qos = qos(reliable=True, depth=depth)
         self.engines: dict[str, VehicleEngine] = {}
@@ -82,153 +92,72 @@ class InferenceNode(Node):
         self.malformed: dict[str, int] = {}
         self.vehicle_ns: dict[str, str] = {}
         self._odom_heard: dict[str, float] = {}  # wall (monotonic) time of the last odometry
-        for v in self.vehicles:
-            self._make_vehicle(v)
-            events = SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos(v))
-            self.create_subscription(
-                Odometry, vehicle_topic(v, 'odom'), self._odometry_callback(v), in_qos,
-                raw=True, event_callbacks=events,
-            )  # fmt: skip
-            self.create_subscription(
-                PoseStamped, vehicle_topic(v, 'reference'), self._reference_callback(v), in_qos,
-                raw=True, event_callbacks=events,
-            )  # fmt: skip
-            self.create_subscription(
-                Path, vehicle_topic(v, 'reference_plan'), self._plan_callback(v), in_qos,
-                raw=True,
-            )  # fmt: skip
-            for topic, msgtype in self.encoders[v].topics.items():
-                self.publishers_[topic] = self.create_publisher(
-                    OUTPUT_TYPES[msgtype], topic, out_qos
-                )
+        self.lost: dict[str, dict[str, int]] = {}  # per vehicle and input: DDS message_lost
+        self._in_qos, self._out_qos = in_qos, out_qos
+        self._started = time.monotonic()
+        # per vehicle: the inputs without a publisher, and since when (wall, monotonic)
+        self._missing: dict[str, list[str]] = {}
+        self._missing_since: dict[str, float] = {}
+        self._warned_missing: set[str] = set()
+        self._discovered: set[str] = set()
+        for v in self.listed or ([] if self.discover else ['']):
+            if self._ours(self._namespace(v)):  # (a listed vehicle of another shard: not ours)
+                self._add_vehicle(v)
+        self._graph_timer = self.create_timer(
+            declared['discovery_period'], self._poll_graph,
+            clock=Clock(clock_type=ClockType.STEADY_TIME),
+        )  # fmt: skip
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
         )
         self._diag_timer = self.create_timer(
-            self.get_parameter('diagnostics_period').value, self._publish_diagnostics
+            declared['diagnostics_period'], self._publish_diagnostics
         )
         self._last_diag = (time.monotonic(), {v: 0 for v in self.vehicles})
         self.create_service(Trigger, '~/reset', self._reset_service)
+        self._applied = self._settings()
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
         self._warned: set[tuple[str, str]] = set()
         self._last_rejected: dict[str, str] = {}  # per vehicle: the last rejection, in words
         self._last_estimate: dict[str, object] = {}
         self._last_prediction_note: dict[str, str] = {}
-        names = ', '.join(v or '/' for v in self.vehicles)
+        names = ', '.join(self.vehicle_ns[v] for v in self.vehicles) or 'no vehicle yet'
+        notes = []
+        if self.shard_count > 1:
+            notes.append(
+                f'shard {self.shard_index} of {self.shard_count}'
+                + (f': {len(self.vehicles)} of the {len(self.listed)} listed vehicles'
+                   if self.listed else '')
+            )  # fmt: skip
+        if self.discover:
+            notes.append('discovering vehicles')
         self.get_logger().info(
             f'ready: {self.engine_config.estimator.algorithm} at {self.engine_config.rate:g} Hz '
-            f'for {names}'
+            f'for {names}' + (f' ({"; ".join(notes)})' if notes else '')
         )
 
     # ------------------------------------------------------------------------- parameters
 
     def _declare_parameters(self) -> dict:
-        ro = {'read_only': True}
-        p = [
-            ('vehicles', [], describe(
-                'vehicle namespaces, e.g. [/uav1, /uav2]; empty: one vehicle, topics relative to '
-                'the node namespace', parameter_type=STRING_ARRAY, **ro)),
-            ('algorithm', DEFAULTS['algorithm'], describe(
-                'estimator: ' + ' | '.join(ALGORITHMS) + ' (cloe and cloe_sm as the paper states '
-                'them; cloe_iv identifies with instrumental variables); changing it restarts',
-                additional_constraints='one of ' + ', '.join(ALGORITHMS))),
-            ('rate', DEFAULTS['rate'], describe(
-                'estimator steps per second of message time, Hz (changing it restarts)')),
-            ('gamma_theta', DEFAULTS['gamma_theta'], describe(
-                'cloe, cloe_sm: identifier gain Gamma (paper: 400)')),
-            ('gamma_l', DEFAULTS['gamma_l'], describe(
-                'adaptive observer-gain rate gamma (paper: 400)')),
-            ('l_initial', DEFAULTS['l_initial'], describe(
-                'initial observer gain L(0), 1/s (cloe_iv: at least l_min)')),
-            ('sm_gains', DEFAULTS['sm_gains'], describe(
-                'sliding-mode gains alpha, one per state (paper Table 1)',
-                additional_constraints='12 values >= 0')),
-            ('sm_exponents', DEFAULTS['sm_exponents'], describe(
-                'sliding-mode exponents p, one per state',
-                additional_constraints='12 values in [0, 1)')),
-            ('reference_timeout', DEFAULTS['reference_timeout'], describe(
-                'odometry lead (s) after which a missing newer reference is held')),
-            ('max_gap', DEFAULTS['max_gap'], describe(
-                'odometry gap (s) treated as a time jump: the estimator re-initialises')),
-            ('world_frame', DEFAULTS['world_frame'], describe(
-                'required header.frame_id of odom and reference; empty: the first one seen',
-                **ro)),
-            ('output_ns', DEFAULTS['output_ns'], describe(
-                'namespace of the outputs under each vehicle namespace', **ro)),
-            ('parameters_rate', DEFAULTS['parameters_rate'], describe(
-                'parameters messages per second of message time, Hz')),
-            ('prediction_horizon', DEFAULTS['prediction_horizon'], describe(
-                'anticipated path length, s (0: no predictions)',
-                **ro)),
-            ('prediction_step', DEFAULTS['prediction_step'], describe(
-                'spacing of the predicted poses, s', **ro)),
-            ('prediction_rate', DEFAULTS['prediction_rate'], describe(
-                'predictions per second of message time, Hz',
-                **ro)),
-            ('prediction_disturbance_time', DEFAULTS['prediction_disturbance_time'], describe(
-                'window of the recent model-error fit and its fading time over the horizon, s '
-                '(0: steady-state offsets only)', **ro)),
-            ('l_leak', DEFAULTS['l_leak'], describe(
-                'cloe_iv: leakage of the observer gain L, 1/s')),
-            ('gamma_d', DEFAULTS['gamma_d'], describe(
-                "cloe_iv: rate of the observer's model-error state on the unknown rows, 1/s^2")),
-            ('l_min', DEFAULTS['l_min'], describe(
-                'cloe_iv: lower bound of L, 1/s')),
-            ('l_max', DEFAULTS['l_max'], describe(
-                'cloe_iv: upper bound of L, 1/s')),
-            ('id_bandwidth', DEFAULTS['id_bandwidth'], describe(
-                "cloe_iv: identifier's filter bandwidth, rad/s")),
-            ('id_highpass', DEFAULTS['id_highpass'], describe(
-                "cloe_iv: identifier's high-pass corner, rad/s")),
-            ('id_window', DEFAULTS['id_window'], describe(
-                'cloe_iv: forgetting time constant of the estimate, s')),
-            ('id_excitation_window', DEFAULTS['id_excitation_window'], describe(
-                'cloe_iv: time constant of the excitation measure, s')),
-            ('id_excitation_threshold', DEFAULTS['id_excitation_threshold'], describe(
-                'cloe_iv: smallest canonical correlation counted as excited')),
-            ('estimate_coupling', DEFAULTS['estimate_coupling'], describe(
-                'cloe_iv: identify the tilt couplings (the paper fixes them at +-g)')),
-            ('ground_altitude', DEFAULTS['ground_altitude'], describe(
-                'cloe_iv: identification pauses while the commanded altitude is at or below '
-                'this, m (below every commanded altitude: never); predictions then do not rely '
-                'on the reference')),
-            ('prediction_intent', DEFAULTS['prediction_intent'], describe(
-                'without a plan, predict where the reference goes from its recent past (else: '
-                'held)', **ro)),
-            ('prediction_guard', DEFAULTS['prediction_guard'], describe(
-                'publish, per horizon, the combination of the closed loop and model-free '
-                'predictors that did best recently (else: the closed loop alone)', **ro)),
-            ('prediction_coverage', DEFAULTS['prediction_coverage'], describe(
-                'probability the published prediction radius is meant to hold', **ro)),
-            ('reference_trust', DEFAULTS['reference_trust'], describe(
-                'check whether the vehicle tracks each reference channel; a channel it does '
-                'not track is replaced by the reference its motion implies (else: always '
-                'trusted)', **ro)),
-            ('reference_trust_ratio', DEFAULTS['reference_trust_ratio'], describe(
-                'a reference channel is not tracked when the model driven by it misses the last '
-                'second by more than this many times constant velocity (and by more than '
-                'reference_trust_floor)', **ro)),
-            ('reference_trust_floor', DEFAULTS['reference_trust_floor'], describe(
-                'the least miss of the model driven by a reference channel over the last second '
-                'that makes it not tracked, m (rad for yaw)', **ro)),
-            ('diagnostics_period', 1.0, describe(
-                '/diagnostics period, s', float_range=(0.05, 60.0), **ro)),
-            ('qos_reliability', 'reliable', describe(
-                'QoS reliability of the subscriptions: reliable | best_effort', **ro,
-                additional_constraints='reliable or best_effort')),
-            ('qos_depth', 1000, describe(
-                'QoS history depth of the subscriptions (10 s of 100 Hz odometry: a node starved '
-                'of CPU for a moment loses nothing)', int_range=(1, 100000), **ro)),
-        ]  # fmt: skip
-        for name, _, d in p:  # one range per setting, the one `cloe infer` checks too
-            if name in RANGES:
-                low, high = RANGES[name]
-                d.floating_point_range = [FloatingPointRange(from_value=low, to_value=high)]
-        values = {name: declare(self, name, default, d) for name, default, d in p}
-        if values['qos_reliability'] not in ('reliable', 'best_effort'):
-            reason = f'must be reliable or best_effort, got {values["qos_reliability"]!r}'
-            raise ParameterError(reason, 'qos_reliability')
-        return values
+        """Declare every setting of :data:`cloe_ros.settings.SETTINGS` (type, range, read-only,
+        description); returns the node's own settings, checked."""
+        values = {}
+        for s in SETTINGS.values():
+            d = describe(
+                s.full_description(),
+                read_only=s.read_only,
+                float_range=s.range if s.kind is float else None,
+                int_range=s.range if s.kind is int else None,
+                additional_constraints=s.constraints(),
+                parameter_type=STRING_ARRAY if s.kind is list else ParameterType.PARAMETER_NOT_SET,
+            )
+            default = list(s.default) if isinstance(s.default, (tuple, list)) else s.default
+            values[s.name] = declare(self, s.name, default, d)
+        try:
+            return node_values(values)
+        except SettingsError as err:
+            raise ParameterError(err.reason, err.name) from err
 
     def _values(self, overrides: dict | None = None) -> dict:
         values = {n: self.get_parameter(n).value for n in DEFAULTS}
@@ -243,15 +172,30 @@ class InferenceNode(Node):
         except SettingsError as err:
             raise ParameterError(err.reason, err.name) from err
 
+    def _settings(self) -> dict:
+        """The engine's settings as the parameters hold them now, each of its own type."""
+        return {s.name: s.coerce(self.get_parameter(s.name).value) for s in engine_settings()}
+
     def _on_set_parameters(self, params):
-        changes = {p.name: p.value for p in params}
+        """Validate: refuse, with the reason, changes the engine cannot use (applied after they
+        are set, in :meth:`_apply_parameters`)."""
         try:
-            engine_config, output_config = build_configs(self._values(changes))
+            build_configs(self._values({p.name: p.value for p in params}))
         except SettingsError as err:
             return refuse(str(err))
-        restart = any(
-            n in changes and changes[n] != self.get_parameter(n).value for n in RESTARTING
-        )
+        return accept()
+
+    def _apply_parameters(self, params) -> None:
+        """Apply what has been set, as each setting's ``on_change`` says: a change of a
+        restarting setting restarts the estimators; every other one applies at once (the
+        engine itself restarts cloe_iv for a change of its identifier's settings)."""
+        engine_config, output_config = self._configs(self._values())
+        settings = self._settings()
+        changed = {n for n, v in settings.items() if v != self._applied.get(n)}
+        self._applied = settings
+        if not changed:
+            return
+        restart = any(SETTINGS[n].on_change == RESTARTS for n in changed)
         self.engine_config, self.output_config = engine_config, output_config
         for v, engine in self.engines.items():
             if restart:
@@ -261,14 +205,44 @@ class InferenceNode(Node):
                 # identifier setting of cloe_iv changed (VehicleEngine.update_estimator)
                 engine.config = replace(engine_config, estimator=engine.config.estimator)
                 engine.update_estimator(engine_config.estimator)
-            if 'parameters_rate' in changes:
+            if 'parameters_rate' in changed:
                 self.encoders[v] = OutputEncoder(output_config, v, self.encoders[v].predictions)
         if restart:
             self.get_logger().info(
                 f'restarted the estimators: {engine_config.estimator.algorithm} at '
                 f'{engine_config.rate:g} Hz'
             )
-        return accept()
+
+    def _add_vehicle(self, v: str) -> None:
+        """Engine, subscriptions and publishers of vehicle ``v``. Every subscription counts the
+        messages DDS reports lost (``message_lost``: overwritten in the publisher's history
+        before this node took them, or gaps seen by a best-effort subscription)."""
+        self._make_vehicle(v)
+        self.vehicles.append(v)
+        self.lost[v] = dict.fromkeys(INPUTS, 0)
+        self._missing[v] = []
+        self._missing_since[v] = time.monotonic()  # until its publishers are seen
+        callbacks = {
+            'odom': (Odometry, self._odometry_callback(v)),
+            'reference': (PoseStamped, self._reference_callback(v)),
+            'reference_plan': (Path, self._plan_callback(v)),
+        }
+        for name, (msgtype, callback) in callbacks.items():
+            events = SubscriptionEventCallbacks(
+                incompatible_qos=self._incompatible_qos(v),
+                message_lost=functools.partial(self._on_lost, v, name),
+            )
+            self.create_subscription(
+                msgtype, vehicle_topic(v, name), callback, self._in_qos, raw=True,
+                event_callbacks=events,
+            )  # fmt: skip
+        for topic, msgtype in self.encoders[v].topics.items():
+            self.publishers_[topic] = self.create_publisher(
+                OUTPUT_TYPES[msgtype], topic, self._out_qos
+            )
+
+    def _on_lost(self, vehicle: str, name: str, info) -> None:
+        self.lost[vehicle][name] += int(info.total_count_change)
 
     def _make_vehicle(self, vehicle: str, keep_stats: bool = False) -> None:
         old = self.engines.get(vehicle)
@@ -281,10 +255,78 @@ class InferenceNode(Node):
             self.output_config, vehicle, self.engine_config.prediction.enabled
         )
         self.malformed.setdefault(vehicle, 0)
-        # the vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics
-        # reports, and how a report of the recording finds which algorithm made each output
+        self.vehicle_ns[vehicle] = self._namespace(vehicle)
+
+    def _namespace(self, vehicle: str) -> str:
+        """The vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics
+        reports, how a report of the recording finds which algorithm made each output, and what
+        the shards hash."""
         odom = self.resolve_topic_name(vehicle_topic(vehicle, 'odom'), only_expand=True)
-        self.vehicle_ns[vehicle] = odom[: -len('/odom')] or '/'
+        return odom[: -len('/odom')] or '/'
+
+    def _ours(self, namespace: str) -> bool:
+        """Whether the vehicle of ``namespace`` belongs to this node's shard."""
+        return shard_of(namespace, self.shard_count) == self.shard_index
+
+    # ---------------------------------------------------------------------------- the graph
+
+    def _poll_graph(self) -> None:
+        """On a steady-clock timer: take up the vehicles discovery finds (``discover``), and
+        check that every vehicle has publishers of odom and reference; warn of a vehicle without
+        them for ``publisher_timeout`` (with a hint when the un-namespaced vehicle waits while
+        namespaced ones fly)."""
+        now = time.monotonic()
+        topics = self.get_topic_names_and_types()
+        if self.discover:
+            known = {self.vehicle_ns[v] for v in self.vehicles}
+            for ns in graph_namespaces(topics):
+                if ns in known or not self._ours(ns) or self._missing_inputs(ns):
+                    continue
+                if ns == '/' and self.get_namespace() != '/':
+                    continue  # (un-namespaced topics outside the node's namespace: not a vehicle)
+                self._add_vehicle('' if ns == '/' else ns)
+                self._discovered.add('' if ns == '/' else ns)
+                shard = f' (shard {self.shard_index})' if self.shard_count > 1 else ''
+                self.get_logger().info(f'discovered {ns}: inferring it{shard}')
+        for v in self.vehicles:
+            ns = self.vehicle_ns[v]
+            missing = self._missing[v] = self._missing_inputs(ns)
+            if not missing:
+                self._missing_since.pop(v, None)
+                if v in self._warned_missing:
+                    self._warned_missing.discard(v)
+                    self.get_logger().info(f'{ns}: odom and reference are published again')
+                continue
+            since = self._missing_since.setdefault(v, now)
+            if now - since < self.publisher_timeout or v in self._warned_missing:
+                continue
+            self._warned_missing.add(v)
+            self.get_logger().warning(self._missing_warning(v, missing, now - since, topics))
+
+    def _missing_inputs(self, namespace: str) -> list[str]:
+        """The inputs of the vehicle of ``namespace`` that nothing publishes."""
+        base = namespace.rstrip('/')
+        return [n for n in ('odom', 'reference') if not self.count_publishers(f'{base}/{n}')]
+
+    def _missing_warning(self, v: str, missing: list[str], for_s: float, topics) -> str:
+        ns = self.vehicle_ns[v]
+        base = ns.rstrip('/')
+        what = ' and '.join(f'{base}/{n}' for n in missing)
+        text = f'{ns}: nothing publishes {what} (for {for_s:.0f} s)'
+        if v in self._discovered:
+            return text + ': the vehicle fell silent'
+        flying = [n for n in graph_namespaces(topics)
+                  if n != ns and not self._missing_inputs(n)]  # fmt: skip
+        if not self.listed and not self.discover and flying:
+            shown = ', '.join(flying[:5]) + (', ...' if len(flying) > 5 else '')
+            return (
+                f'{text}; odom and reference are published under {shown}: set '
+                f'vehicles:=[{", ".join(flying)}] or discover:=true'
+            )
+        return text + (
+            f'; is {ns} the namespace of a vehicle that flies? (vehicles: '
+            f'[{", ".join(self.listed)}]; discover:=true takes the namespaces that publish)'
+        )
 
     # -------------------------------------------------------------------------- callbacks
 
@@ -425,6 +467,16 @@ class InferenceNode(Node):
             message = f'running; {rejected} input(s) rejected, the last: {last}'
         else:
             level, message = messages.OK, 'running'
+        lost = self.lost[vehicle]
+        if any(lost.values()):
+            level = max(level, messages.WARN)
+            message += '; lost in DDS: ' + ', '.join(f'{n} {k}' for k, n in lost.items() if n)
+        missing = self._missing.get(vehicle, [])
+        since = self._missing_since.get(vehicle)
+        if missing and since is not None and time.monotonic() - since >= self.publisher_timeout:
+            level = max(level, messages.WARN)
+            message += (f'; nothing publishes {" and ".join(missing)} for '
+                        f'{time.monotonic() - since:.0f} s')  # fmt: skip
         heard = self._odom_heard.get(vehicle)
         silent = None if heard is None else time.monotonic() - heard
         if engine.started and silent is not None and silent > STALE_AFTER:
@@ -458,6 +510,8 @@ class InferenceNode(Node):
             ('reference_accepted', str(s.reference_accepted)),
             ('rejected', str(rejected)),
             ('malformed', str(self.malformed[vehicle])),
+            *[(f'{name}_lost', str(n)) for name, n in lost.items()],
+            ('publishers_missing', ', '.join(missing)),
             *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
             ('time_jumps', str(s.time_jumps)),
             ('position_jumps', str(s.position_jumps)),
@@ -474,6 +528,31 @@ class InferenceNode(Node):
         ns = self.vehicle_ns[vehicle]
         return Status(level, f'{self.get_name()}: {ns}', message, ns, tuple(values))
 
+    def node_status(self) -> Status:
+        """The node's own status: which vehicles it infers (its shard), and those without
+        publishers for ``publisher_timeout``."""
+        now = time.monotonic()
+        silent = [self.vehicle_ns[v] for v in self.vehicles if self._missing.get(v)
+                  and now - self._missing_since.get(v, now) >= self.publisher_timeout]  # fmt: skip
+        names = [self.vehicle_ns[v] for v in self.vehicles]
+        message = f'{len(names)} vehicle(s)'
+        if self.shard_count > 1:
+            message += f', shard {self.shard_index} of {self.shard_count}'
+        if self.discover:
+            message += ', discovering'
+        if silent:
+            message += '; without publishers: ' + ', '.join(silent)
+        values = (
+            ('vehicles', ' '.join(names)),
+            ('vehicle_count', str(len(names))),
+            ('discover', str(self.discover).lower()),
+            ('shard_index', str(self.shard_index)),
+            ('shard_count', str(self.shard_count)),
+            ('without_publishers', ' '.join(silent)),
+        )
+        level = messages.WARN if silent else messages.OK
+        return Status(level, self.get_name(), message, self.get_fully_qualified_name(), values)
+
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
         t_prev, steps_prev = self._last_diag
@@ -484,6 +563,7 @@ class InferenceNode(Node):
                 self.vehicle_status(v, (engine.stats.steps - steps_prev.get(v, 0)) / dt)
             )
         self._last_diag = (now, {v: e.stats.steps for v, e in self.engines.items()})
+        statuses.append(self.node_status())
         stamp = self.get_clock().now().nanoseconds
         self.diagnostics_pub.publish(encode_diagnostics(stamp, statuses))
 

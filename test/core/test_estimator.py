@@ -177,10 +177,11 @@ def test_table1_gains_and_exponents_per_state():
     'kwargs, message',
     [
         ({'algorithm': 'kalman'}, "algorithm 'kalman' is not one of cloe, cloe_sm"),
-        ({'gamma_theta': -1.0}, 'gamma_theta must be finite and >= 0'),
-        ({'l_initial': float('nan')}, 'l_initial must be finite and >= 0'),
+        ({'gamma_theta': -1.0}, r'gamma_theta must be within \[0, 1e\+06\], got -1.0'),
+        ({'l_initial': float('nan')}, r'l_initial must be within \[0, 10000\], got nan'),
         ({'sm_exponents': (1.0,) * 12}, r'sm_exponents must lie in \[0, 1\)'),
-        ({'sm_gains': (0.1,) * 11}, 'need 12 entries'),
+        ({'sm_gains': (0.1,) * 11}, 'sm_gains needs 12 numbers, one per state, got 11'),
+        ({'l_min': 60.0}, r'l_min must be at most l_max \(50\), got 60.0'),
         ({'theta_initial': (0.0,) * 3}, 'theta_initial needs 16 entries, got 3'),
     ],
 )

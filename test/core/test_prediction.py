@@ -92,9 +92,9 @@ def test_a_recent_model_error_carries_into_the_next_half_second_and_fades():
 
 
 def test_invalid_disturbance_time_is_refused():
-    with pytest.raises(ConfigError, match='disturbance time'):
+    with pytest.raises(ConfigError, match='prediction_disturbance_time must be within'):
         PredictionConfig(disturbance_time=-1.0)
-    with pytest.raises(ConfigError, match='disturbance time'):
+    with pytest.raises(ConfigError, match='prediction_disturbance_time must be within'):
         PredictionConfig(disturbance_time=float('nan'))
 
 

@@ -114,7 +114,7 @@ def test_sim_and_inference_infer_the_simulated_state(context):
         tlabels, theta = messages.decode_float64_multi_array(col.msgs['true_parameters'][0])
         assert tlabels == [f'theta.{n}' for n in PARAMETER_NAMES]
         np.testing.assert_allclose(theta, true_parameters())
-        (status,) = inference_diagnostics()[-1]
+        (status,) = _vehicles(inference_diagnostics()[-1])
         values = dict(status.values)
         assert status.name == 'cloe_inference: /'
         # OK, unless the odometry has already been silent for STALE_AFTER s (then it says so)
@@ -140,10 +140,15 @@ def _diagnosed(ex, col: Collector, odom_received: int, timeout: float = 10.0) ->
     def counted():
         if not col.msgs['/diagnostics']:
             return False
-        _, (st,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+        (st,) = _vehicles(messages.decode_diagnostics(col.msgs['/diagnostics'][-1])[1])
         return int(dict(st.values)['odom_received']) >= odom_received
 
     return spin_until(ex, counted, timeout=timeout)
+
+
+def _vehicles(statuses: list) -> list:
+    """The vehicles' statuses of an inference node's /diagnostics (not the node's own one)."""
+    return [s for s in statuses if 'algorithm' in dict(s.values)]
 
 
 def _ref_bytes(stamp_ns, r):
@@ -190,7 +195,7 @@ def test_bad_inputs_are_rejected_counted_and_reported(context):
 
         assert _diagnosed(ex, col, odom_received=204)
         spin_until(ex, lambda: False, timeout=0.5)
-        _, (status,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+        (status,) = _vehicles(messages.decode_diagnostics(col.msgs['/diagnostics'][-1])[1])
         values = dict(status.values)
         assert status.level == messages.WARN and 'rejected' in status.message
         assert values['rejected: non-finite odometry'] == '1'
@@ -239,7 +244,7 @@ def test_a_plan_before_the_odometry_does_not_set_the_world_frame(context):
             spin_until(ex, lambda: False, timeout=0.002)
 
         assert _diagnosed(ex, col, odom_received=100)
-        _, (status,) = messages.decode_diagnostics(col.msgs['/diagnostics'][-1])
+        (status,) = _vehicles(messages.decode_diagnostics(col.msgs['/diagnostics'][-1])[1])
         values = dict(status.values)
         assert values['rejected: plan before the world frame'] == '1'
         assert values['odom_accepted'] == '100' and values['reference_accepted'] == '100'
@@ -301,7 +306,7 @@ def test_reset_service_forgets_the_model(context):
         ('sm_gains', [0.1] * 3, 'needs 12 numbers, one per state, got 3'),
         ('l_min', 60.0, 'must be at most l_max (50), got 60.0'),
         ('vehicles', ['/a b'], "vehicle namespace '/a b' is not valid"),
-        ('qos_reliability', 'sometimes', "must be reliable or best_effort, got 'sometimes'"),
+        ('qos_reliability', 'sometimes', "'sometimes' is not one of reliable, best_effort"),
     ],
 )
 def test_invalid_startup_parameters_are_refused_with_a_reason(context, name, value, reason):

@@ -109,7 +109,7 @@ def test_shipped_config_starts_the_node(ros, tmp_path, executable, config, ready
     differ = {n: (values[n], got[n]) for n in values if not same(values[n], got[n])}
     assert not differ, f'{config} values not taken (file, node): {differ}'
     if executable == 'cloe_inference':
-        # the file's algorithm is not the node's default (cloe_iv): the log proves it was read
+        # the log says the algorithm and rate the file gives
         assert f'ready: {values["algorithm"]} at {values["rate"]:g} Hz' in out
 
 

@@ -1,0 +1,303 @@
+"""cloe_inference as a process on a domain of its own, seen through DDS: what it loses is counted
+(``message_lost``), which vehicles it takes (listed, discovered, its shard), and what it says
+about vehicles nothing publishes for.
+
+Every wait is on a condition the node reports, with a timeout a loaded machine meets; nothing is
+timed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import zlib
+from pathlib import Path
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
+
+from cloe_ros.io.messages import decode_diagnostics
+from cloe_ros.ros.fleet import check_shard, shard_of
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def ros():
+    with private_domain('inference_graph_test') as ros:
+        yield ros
+
+
+class Diagnostics:
+    """The last status per name on /diagnostics, each message decoded once."""
+
+    def __init__(self, ros) -> None:
+        self.statuses: dict[str, object] = {}
+        ros.node.create_subscription(DiagnosticArray, '/diagnostics', self._take, 100, raw=True)
+
+    def _take(self, raw: bytes) -> None:
+        for status in decode_diagnostics(raw)[1]:
+            self.statuses[status.name] = status
+
+    def values(self, name: str) -> dict[str, str]:
+        status = self.statuses.get(name)
+        return {} if status is None else dict(status.values)
+
+
+def odometry(k: int) -> Odometry:
+    m = Odometry()
+    m.header.stamp.sec, m.header.stamp.nanosec = 1000 + k // 100, (k % 100) * 10_000_000
+    m.header.frame_id, m.child_frame_id = 'world', 'base_link'
+    m.pose.pose.position.z = 1.0
+    m.pose.pose.orientation.w = 1.0
+    return m
+
+
+def test_messages_lost_in_dds_are_counted_per_topic(ros, tmp_path: Path) -> None:
+    """The node is stopped (SIGSTOP) while a reliable publisher whose history holds 10 messages
+    publishes 3000 odometry messages; the ones overwritten before the node took them are lost.
+    Once it runs again, /diagnostics counts them under odom_lost, and what it received plus what
+    it lost is what was published (reliable delivery: every other message arrives)."""
+    n = 3000
+    pub = ros.node.create_publisher(
+        Odometry, '/odom', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    diagnostics = Diagnostics(ros)
+    node = NodeProcess('cloe_inference', {'diagnostics_period': 0.2}, ros.domain, tmp_path)
+    name = 'cloe_inference: /'
+    try:
+        assert spin_until(ros.executor, lambda: pub.get_subscription_count() >= 1, 60), (
+            node.output()
+        )
+        assert spin_until(ros.executor, lambda: diagnostics.values(name), 60), node.output()
+        os.kill(node.proc.pid, signal.SIGSTOP)
+        try:
+            for k in range(n):
+                pub.publish(odometry(k))
+        finally:
+            os.kill(node.proc.pid, signal.SIGCONT)
+
+        def counts() -> tuple[int, int]:
+            values = diagnostics.values(name)
+            return int(values['odom_received']), int(values['odom_lost'])
+
+        assert spin_until(ros.executor, lambda: sum(counts()) >= n, 120), (counts(), node.output())
+        received, lost = counts()
+        print(f'published {n}: the node received {received} and counts {lost} lost')
+        assert lost > 0 and received + lost == n
+        values = diagnostics.values(name)
+        assert values['reference_lost'] == '0' and values['reference_plan_lost'] == '0'
+        assert diagnostics.statuses[name].level == 1  # WARN
+        assert f'lost in DDS: {lost} odom' in diagnostics.statuses[name].message
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        if node.proc.poll() is None:
+            os.kill(node.proc.pid, signal.SIGCONT)
+        node.stop(signal.SIGKILL)
+
+
+# -- vehicles: listed, discovered, sharded -------------------------------------------------------
+
+
+@pytest.fixture
+def context():
+    import rclpy
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=reserve_domain_id())
+    try:
+        yield ctx
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+def _inference(context, **params):
+    from rclpy.parameter import Parameter
+
+    from cloe_ros.ros.inference_node import InferenceNode
+
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    return InferenceNode(context=context, parameter_overrides=overrides)
+
+
+def _executor(context, *nodes):
+    from rclpy.executors import SingleThreadedExecutor
+
+    ex = SingleThreadedExecutor(context=context)
+    for n in nodes:
+        ex.add_node(n)
+    return ex
+
+
+def _vehicle_publishers(node, namespace: str) -> list:
+    from geometry_msgs.msg import PoseStamped
+
+    return [node.create_publisher(Odometry, f'{namespace}/odom', 10),
+            node.create_publisher(PoseStamped, f'{namespace}/reference', 10)]  # fmt: skip
+
+
+def test_shards_are_a_stable_hash_of_the_namespace():
+    """crc32 of the namespace's UTF-8 bytes, mod the count: the same in every process (Python's
+    own str hash is salted per process)."""
+    assert zlib.crc32(b'/uav1') == 3103547451
+    assert [shard_of(f'/uav{k}', 3) for k in range(1, 13)] == [0, 0, 1, 0, 0, 2, 1, 0, 0, 2, 0, 1]
+    assert {shard_of(f'/uav{k}', 1) for k in range(100)} == {0}
+    assert check_shard(2, 3) is None
+    assert check_shard(3, 3).startswith('must be below shard_count (3), got 3')
+
+
+@pytest.mark.parametrize(('index', 'count'), [(3, 3), (1, 1)])
+def test_a_shard_index_beyond_the_count_is_a_startup_error(context, index, count):
+    from cloe_ros.ros.common import ParameterError
+
+    with pytest.raises(ParameterError) as info:
+        _inference(context, shard_index=index, shard_count=count)
+    assert str(info.value).startswith(
+        f"parameter 'shard_index': must be below shard_count ({count}), got {index}"
+    )
+
+
+def test_listed_vehicles_outside_the_shard_are_left_to_the_others(context):
+    vehicles = [f'/uav{k}' for k in range(1, 13)]
+    nodes = [_inference(context, vehicles=vehicles, shard_index=i, shard_count=3)
+             for i in range(3)]  # fmt: skip
+    try:
+        taken = [sorted(n.vehicle_ns.values()) for n in nodes]
+        assert sorted(ns for names in taken for ns in names) == sorted(vehicles)  # once each
+        for i, names in enumerate(taken):
+            assert all(shard_of(ns, 3) == i for ns in names)
+    finally:
+        for n in nodes:
+            n.destroy_node()
+
+
+def test_a_listed_vehicle_without_publishers_is_warned_of(context, capfd):
+    """/uav1 has publishers, /uav9 has none: after publisher_timeout, /uav9 is WARN in
+    /diagnostics and the log says what nothing publishes."""
+    inf = _inference(context, vehicles=['/uav1', '/uav9'], discovery_period=0.1,
+                     publisher_timeout=0.5)  # fmt: skip
+    helper = rclpy_node(context)
+    pubs = _vehicle_publishers(helper, '/uav1')
+    ex = _executor(context, inf, helper)
+    try:
+        assert spin_until(ex, lambda: inf.node_status().level == 1, 30)
+        assert dict(inf.node_status().values)['without_publishers'] == '/uav9'
+        statuses = {v: inf.vehicle_status(v, 0.0) for v in inf.vehicles}
+        assert dict(statuses['/uav9'].values)['publishers_missing'] == 'odom, reference'
+        assert 'nothing publishes odom and reference' in statuses['/uav9'].message
+        assert dict(statuses['/uav1'].values)['publishers_missing'] == ''
+        assert 'nothing publishes' not in statuses['/uav1'].message
+        spin_until(ex, lambda: False, 0.3)  # (let the log line reach stderr)
+        err = capfd.readouterr().err
+        assert '/uav9: nothing publishes /uav9/odom and /uav9/reference' in err
+        assert 'discover:=true' in err and '/uav1: nothing' not in err
+    finally:
+        ex.shutdown()
+        del pubs
+        for n in (inf, helper):
+            n.destroy_node()
+
+
+def test_no_list_while_namespaced_vehicles_fly_gives_a_hint(context, capfd):
+    inf = _inference(context, discovery_period=0.1, publisher_timeout=0.5)
+    helper = rclpy_node(context)
+    pubs = _vehicle_publishers(helper, '/uav1') + _vehicle_publishers(helper, '/uav2')
+    ex = _executor(context, inf, helper)
+    try:
+        hint = 'set vehicles:=[/uav1, /uav2] or discover:=true'
+        text = ''
+
+        def hinted() -> bool:
+            nonlocal text
+            text += capfd.readouterr().err
+            return hint in text
+
+        assert spin_until(ex, hinted, 30), text
+        assert 'nothing publishes /odom and /reference' in text
+    finally:
+        ex.shutdown()
+        del pubs
+        for n in (inf, helper):
+            n.destroy_node()
+
+
+def test_discovery_takes_up_vehicles_that_appear_and_reports_those_that_fall_silent(context):
+    inf = _inference(context, discover=True, discovery_period=0.1, publisher_timeout=0.5)
+    helper = rclpy_node(context)
+    ex = _executor(context, inf, helper)
+    try:
+        assert inf.vehicles == []  # nothing flies yet: no vehicle, not even the root one
+        pubs = _vehicle_publishers(helper, '/uav3')
+        # a namespace with odometry but no reference is not a vehicle
+        lone = helper.create_publisher(Odometry, '/uav4/odom', 10)
+        assert spin_until(ex, lambda: '/uav3' in inf.vehicles, 30)
+        assert dict(inf.node_status().values)['vehicles'] == '/uav3'
+        assert inf.vehicle_status('/uav3', 0.0).name == 'cloe_inference: /uav3'
+        for pub in pubs:
+            helper.destroy_publisher(pub)
+        assert spin_until(
+            ex, lambda: dict(inf.node_status().values)['without_publishers'] == '/uav3', 30
+        )
+        assert inf.vehicles == ['/uav3'] and lone is not None
+    finally:
+        ex.shutdown()
+        for n in (inf, helper):
+            n.destroy_node()
+
+
+def rclpy_node(context):
+    import rclpy
+
+    return rclpy.create_node('graph_test_helper', context=context)
+
+
+def test_three_shards_split_twelve_simulated_vehicles(ros, tmp_path: Path) -> None:
+    """One simulator flies 12 vehicles; 3 inference nodes (discover, shard_count 3) split them:
+    every vehicle's cloe/state has exactly one publisher, the node of its shard, and reaches us;
+    the nodes' reported vehicle lists are a partition of the 12."""
+    vehicles = [f'/uav{k}' for k in range(1, 13)]
+    states: dict[str, int] = dict.fromkeys(vehicles, 0)
+    for v in vehicles:
+        ros.node.create_subscription(
+            Odometry, f'{v}/cloe/state',
+            lambda raw, v=v: states.__setitem__(v, states[v] + 1), 100, raw=True,
+        )  # fmt: skip
+    diagnostics = Diagnostics(ros)
+    # light on CPU: 20 Hz odometry and inference, no predictions, half real time
+    shards = [
+        NodeProcess('cloe_inference', {
+            'discover': True, 'shard_index': i, 'shard_count': 3, 'discovery_period': 0.2,
+            'rate': 20.0, 'algorithm': 'cloe_sm', 'prediction_horizon': 0.0,
+            'diagnostics_period': 0.5,
+        }, ros.domain, tmp_path, ['-r', f'__node:=shard{i}'])
+        for i in range(3)
+    ]  # fmt: skip
+    sim = NodeProcess('quadrotor_sim', {
+        'vehicles': vehicles, 'scenario': 'hover', 'sim_rate': 200.0, 'odom_rate': 20.0,
+        'reference_rate': 20.0, 'real_time_factor': 0.5, 'publish_truth': False,
+    }, ros.domain, tmp_path)  # fmt: skip
+    procs = [*shards, sim]
+    try:
+        def everything() -> bool:
+            return all(states.values()) and all(
+                len(diagnostics.values(f'shard{i}').get('vehicles', '').split())
+                == sum(shard_of(v, 3) == i for v in vehicles)
+                for i in range(3)
+            )
+
+        assert spin_until(ros.executor, everything, 180), (
+            states, {i: diagnostics.values(f'shard{i}') for i in range(3)},
+            '\n'.join(p.output()[-2000:] for p in procs),
+        )
+        reported = {i: set(diagnostics.values(f'shard{i}')['vehicles'].split()) for i in range(3)}
+        for v in vehicles:
+            publishers = ros.node.get_publishers_info_by_topic(f'{v}/cloe/state')
+            assert [p.node_name for p in publishers] == [f'shard{shard_of(v, 3)}'], v
+            assert [i for i in range(3) if v in reported[i]] == [shard_of(v, 3)], v
+        assert set().union(*reported.values()) == set(vehicles)
+    finally:
+        for p in procs:
+            p.stop(signal.SIGINT)

@@ -19,9 +19,11 @@ from cloe_ros.cli.outputs import check_new_file
 from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.core.engine import NS
 from cloe_ros.core.evaluation import (
+    GAUSSIAN_2SIGMA,
     HORIZONS,
     PredictionScore,
     Run,
+    covariance_coverage,
     parameter_error_over_time,
     run_engine,
     score_predictions,
@@ -128,6 +130,25 @@ def _score_dict(score: PredictionScore) -> dict:
     }
 
 
+#: Units of the covariance blocks' errors.
+BLOCK_UNITS = {'position': 'm', 'attitude': 'rad', 'velocity': 'm/s', 'rates': 'rad/s'}
+
+
+def format_coverage(coverage: dict[str, dict[str, float]]) -> list[str]:
+    """Lines of the ``cloe/state`` covariance calibration (:func:`covariance_coverage`)."""
+    lines = [f'  cloe/state covariance: true errors inside 2 sigma (Gaussian: '
+             f'{100 * GAUSSIAN_2SIGMA[1]:.1f} % per axis, {100 * GAUSSIAN_2SIGMA[3]:.1f} % in the '
+             f'3-D ellipsoid)']  # fmt: skip
+    for name, c in coverage.items():
+        unit = BLOCK_UNITS[name]
+        lines.append(
+            f'    {name:>8}: per axis {100 * c["interval_1d"]:5.1f} % (lowest '
+            f'{100 * c["interval_1d_lowest"]:5.1f} %), 3-D {100 * c["ellipsoid_3d"]:5.1f} %; '
+            f'RMS error {c["rms_error"]:.2g} {unit}, median sigma {c["median_sigma"]:.2g} {unit}'
+        )
+    return lines
+
+
 def _identification_summary(run: Run) -> list[str]:
     lines = []
     if run.status is not None:
@@ -230,6 +251,9 @@ def run_sim(args) -> int:
                                                for b in [*BLOCK_NAMES, 'all']))  # fmt: skip
         for line in _identification_summary(run):
             print(line)
+        coverage = covariance_coverage(run, truth_t, truth)
+        for line in format_coverage(coverage):
+            print(line)
         calibration = None if run.status is None else status_calibration(run, theta_true)
         if calibration is not None:
             print('  time reported identified / of it more than 10 % off / largest error while '
@@ -259,6 +283,7 @@ def run_sim(args) -> int:
             'coupling_final': run.coupling[-1].tolist(),
             'L_max': float(np.max(run.gain_l)),
             'theta_hat_abs_max': float(np.max(np.abs(run.theta_hat))),
+            'covariance_coverage': coverage,
         }
         if calibration is not None:
             entry['status_calibration'] = calibration

@@ -17,7 +17,7 @@ from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs, load_settings
 from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE
-from cloe_ros.io.outputs import OutputEncoder
+from cloe_ros.io.outputs import LATCHED_QOS, OutputEncoder
 from cloe_ros.io.reader import BagError, BagReader
 from cloe_ros.io.writer import BagWriter, WriterError
 
@@ -140,7 +140,8 @@ def infer_bag(
                     writer.add_topic(topic, topics[topic], reader.topics[topic].offered_qos)
                 for enc in encoders.values():
                     for topic, msgtype in enc.topics.items():
-                        writer.add_topic(topic, msgtype)
+                        latched = topic in enc.latched_topics
+                        writer.add_topic(topic, msgtype, [LATCHED_QOS] if latched else ())
 
                 def emit(vehicle, estimates):
                     engine, enc = engines[vehicle], encoders[vehicle]

@@ -52,6 +52,7 @@ import numpy as np
 
 from cloe_ros.core.algorithms import make_estimator
 from cloe_ros.core.anticipation import POSITION, AnticipationConfig, Anticipator, TrustStatus
+from cloe_ros.core.covariance import ErrorCovariance
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
 from cloe_ros.core.kinematics import (
@@ -158,6 +159,9 @@ class Estimate:
         prediction_radius: With ``prediction``: the 95 % radius of each pose (n,), m.
         prediction_weights: With ``prediction``: the guard's weight of each candidate per pose
             (n, M), :data:`~cloe_ros.core.anticipation.CANDIDATES` order.
+        error_variance: Estimated variance of ``zeta_hat - zeta`` per state (12,), in ``zeta``'s
+            units (:class:`~cloe_ros.core.covariance.ErrorCovariance`; ``cloe/state``'s
+            covariances are made from it).
 
     """
 
@@ -176,6 +180,7 @@ class Estimate:
     trust: TrustStatus | None = None
     prediction_radius: np.ndarray | None = None
     prediction_weights: np.ndarray | None = None
+    error_variance: np.ndarray | None = None
 
     @property
     def error(self) -> np.ndarray:
@@ -303,6 +308,7 @@ class VehicleEngine:
             prediction.rate, config.estimator.ground_altitude,
         ) if prediction.enabled else None  # fmt: skip
         self._t0_ns: int | None = None  # origin of the anticipator's seconds
+        self._covariance = ErrorCovariance(self._h)  # the estimate's error statistics
         self._trust: TrustStatus | None = None
 
     # ----------------------------------------------------------------------------- inputs
@@ -645,6 +651,7 @@ class VehicleEngine:
         self._t_ns = None
         self._model = None
         self._prediction_slot = None
+        self._covariance.reset()
         self._history.clear()
         self._clear_anticipation()
 
@@ -774,6 +781,7 @@ class VehicleEngine:
             est.theta_hat[0], est.gain_l[0] = self._model
         self._est, self._t_ns, self._anchor_exact = est, t0, False
         self._last_r = r
+        self._covariance.restart()
         return self._estimate(t0, zeta, r)
 
     def _run(self, force_reference: bool) -> list[Estimate]:
@@ -852,6 +860,7 @@ class VehicleEngine:
             model=(model_theta[0].copy(), model_coupling[0].copy()),
             trust=self._trust,
         )  # fmt: skip
+        e.error_variance = self._covariance.update(zeta, e.zeta_hat, e.gain_l).copy()
         self.stats.steps += 1
         self.stats.last_stamp_ns = t_ns
         self.stats.last_error_norm = float(np.linalg.norm(e.error))

@@ -7,6 +7,7 @@ odometry and reference samples), so the numbers describe what a user gets.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -138,6 +139,8 @@ class Run:
     pred_status: list[int]
     withheld: int
     engine: VehicleEngine = field(repr=False)
+    zeta_hat: np.ndarray | None = None  # (T, 12) the recorded estimates
+    error_variance: np.ndarray | None = None  # (T, 12) their estimated error variances
 
 
 def feed(
@@ -207,6 +210,9 @@ def collect(algorithm: str, engine: VehicleEngine, recorded, predicted) -> Run:
         pred_status=[e.prediction_status for e in made],
         withheld=sum(1 for e in predicted if e.prediction is None),
         engine=engine,
+        zeta_hat=np.array([e.zeta_hat for e in recorded]).reshape(-1, 12),
+        error_variance=None if any(e.error_variance is None for e in recorded)
+        else np.array([e.error_variance for e in recorded]).reshape(-1, 12),
     )
 
 
@@ -316,6 +322,61 @@ def status_calibration(
             'identified': float(np.mean(said)),
             'identified_but_wrong': float(np.mean(said & (err > wrong))),
             'max_error_identified': float(np.max(err[said])) if np.any(said) else float('nan'),
+        }
+    return out
+
+
+#: Gaussian probability of the 2-sigma interval (1-D) and of the 2-sigma ellipsoid (3-D):
+#: ``P(chi2_k <= 4)``, k = 1 and 3.
+GAUSSIAN_2SIGMA = {1: math.erf(2.0 / math.sqrt(2.0)),
+                   3: math.erf(math.sqrt(2.0)) - 2.0 * math.sqrt(2.0 / math.pi) * math.exp(-2.0)}
+#: The blocks of ``cloe/state`` whose covariance is scored: (name, pose or twist, rows).
+COVARIANCE_BLOCKS = (('position', 'pose', slice(0, 3)), ('attitude', 'pose', slice(3, 6)),
+                     ('velocity', 'twist', slice(0, 3)), ('rates', 'twist', slice(3, 6)))
+
+
+def state_errors(zeta_hat: np.ndarray, zeta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Estimate minus truth in ``cloe/state``'s terms (REP-105), ``(pose (T, 6), twist (T, 6))``:
+    world position, Euler angles (roll, pitch, yaw; wrapped), body velocity, body rates."""
+    p_hat, _, v_hat, w_hat = state_to_odometry(zeta_hat)
+    p, _, v, w = state_to_odometry(zeta)
+    angles = zeta_hat[:, [6, 2, 8]] - zeta[:, [6, 2, 8]]
+    angles = (angles + np.pi) % (2.0 * np.pi) - np.pi
+    return np.hstack([p_hat - p, angles]), np.hstack([v_hat - v, w_hat - w])
+
+
+def covariance_coverage(
+    run: Run, t_truth: np.ndarray, zeta_truth: np.ndarray, t_from: float = 0.0
+) -> dict[str, dict[str, float]]:
+    """How well ``cloe/state``'s covariance describes the true error: per block (position,
+    attitude, body velocity, body rates), over the recorded estimates from ``t_from`` on, the
+    fraction of errors (estimate minus ``zeta_truth`` interpolated) inside the 2-sigma ellipsoid
+    of the block's 3x3 covariance (Gaussian: 73.9 %), the fraction inside each axis' 2-sigma
+    interval (Gaussian: 95.4 %, the mean over the three axes and the lowest), and the RMS of the
+    true error (norm) beside the median of the reported standard deviation (root of the trace)."""
+    if run.error_variance is None:
+        raise ValueError(f'{run.algorithm}: the run has no error variances')
+    from cloe_ros.core.covariance import odometry_covariance
+
+    keep = run.t >= t_from
+    truth = interpolate(t_truth, zeta_truth, run.t[keep])
+    ok = np.all(np.isfinite(truth), axis=1)
+    zeta_hat, variance = run.zeta_hat[keep][ok], run.error_variance[keep][ok]
+    errors = dict(zip(('pose', 'twist'), state_errors(zeta_hat, truth[ok])))
+    covs = dict(zip(('pose', 'twist'), odometry_covariance(zeta_hat, variance)))
+    out = {}
+    for name, part, rows in COVARIANCE_BLOCKS:
+        err, cov = errors[part][:, rows], covs[part][:, rows, rows]
+        d2 = np.einsum('ti,ti->t', err, np.linalg.solve(cov, err[..., None])[..., 0])
+        sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+        axis = np.mean(np.abs(err) <= 2.0 * sigma, axis=0)
+        out[name] = {
+            'ellipsoid_3d': float(np.mean(d2 <= 4.0)),
+            'interval_1d': float(np.mean(axis)),
+            'interval_1d_lowest': float(np.min(axis)),
+            'rms_error': float(np.sqrt(np.mean(np.sum(err**2, axis=1)))),
+            'median_sigma': float(np.median(np.sqrt(np.sum(sigma**2, axis=1)))),
+            'count': len(err),
         }
     return out
 

@@ -33,6 +33,8 @@ FLOAT64_MULTI_ARRAY = 'std_msgs/msg/Float64MultiArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
 CLOCK = 'rosgraph_msgs/msg/Clock'
 MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
+STRING = 'std_msgs/msg/String'
+PARAMETER_EVENT = 'rcl_interfaces/msg/ParameterEvent'
 
 _T = TYPESTORE.types
 Time = _T['builtin_interfaces/msg/Time']
@@ -60,6 +62,11 @@ Marker = _T['visualization_msgs/msg/Marker']
 MarkerArray = _T[MARKER_ARRAY]
 MeshFile = _T['visualization_msgs/msg/MeshFile']
 CompressedImage = _T['sensor_msgs/msg/CompressedImage']
+String = _T[STRING]
+ParameterEvent = _T[PARAMETER_EVENT]
+Parameter = _T['rcl_interfaces/msg/Parameter']
+ParameterValue = _T['rcl_interfaces/msg/ParameterValue']
+PARAMETER_DOUBLE = 3  # rcl_interfaces/msg/ParameterType
 
 
 def stamp_to_ns(stamp) -> int:
@@ -175,6 +182,53 @@ def encode_multi_array(dims: Sequence[tuple[str, int]], data: np.ndarray) -> byt
         msg = f'dimensions {sizes} for {data.size} values'
         raise ValueError(msg)
     return _shaped_layout(dims).encode(data)
+
+
+def encode_string(text: str) -> bytes:
+    """CDR of a ``std_msgs/msg/String``."""
+    return bytes(TYPESTORE.serialize_cdr(String(data=text), STRING))
+
+
+def decode_string(raw: bytes | memoryview) -> str:
+    """The text of a ``std_msgs/msg/String``."""
+    return _deserialize(raw, STRING).data
+
+
+def _double(value: float):
+    empty = np.zeros(0)
+    return ParameterValue(
+        type=PARAMETER_DOUBLE, bool_value=False, integer_value=0, double_value=float(value),
+        string_value='', byte_array_value=np.zeros(0, np.uint8),
+        bool_array_value=np.zeros(0, bool), integer_array_value=np.zeros(0, np.int64),
+        double_array_value=empty, string_array_value=[],
+    )  # fmt: skip
+
+
+def encode_named_values(
+    stamp_ns: int, source: str, labels: Sequence[str], values: np.ndarray
+) -> bytes:
+    """CDR of a ``rcl_interfaces/msg/ParameterEvent`` carrying ``values`` as named doubles in
+    ``new_parameters`` (``name`` = the label, ``value.double_value``), ``node`` = ``source``: a
+    standard message whose array elements a viewer can pick by name (Foxglove:
+    ``.new_parameters[:]{name=="theta_hat.x_theta.a_x"}.value.double_value``)."""
+    values = np.asarray(values, dtype=np.float64)
+    if len(labels) != values.size:
+        msg = f'{len(labels)} labels for {values.size} values'
+        raise ValueError(msg)
+    msg = ParameterEvent(
+        stamp=ns_to_time(stamp_ns), node=source,
+        new_parameters=[Parameter(name=n, value=_double(v)) for n, v in zip(labels, values)],
+        changed_parameters=[], deleted_parameters=[],
+    )  # fmt: skip
+    return bytes(TYPESTORE.serialize_cdr(msg, PARAMETER_EVENT))
+
+
+def decode_named_values(raw: bytes | memoryview) -> tuple[int, str, list[str], np.ndarray]:
+    """Stamp (ns), source, names and values of :func:`encode_named_values`' message."""
+    msg = _deserialize(raw, PARAMETER_EVENT)
+    names = [p.name for p in msg.new_parameters]
+    values = np.array([p.value.double_value for p in msg.new_parameters], dtype=float)
+    return stamp_to_ns(msg.stamp), msg.node, names, values
 
 
 def _marker(stamp_ns: int, frame_id: str, ns: str, marker_id: int, kind: int, position,

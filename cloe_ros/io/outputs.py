@@ -3,18 +3,22 @@
 Both call :meth:`OutputEncoder.encode` on the same sequence of estimates, so they emit the same
 messages with the same stamps: ``<ns>/<output_ns>/state`` at every step, ``<ns>/<output_ns>/
 parameters`` whenever the estimate time crosses a multiple of the parameter period (message time),
-and, whenever the engine attached an anticipated path, ``<ns>/<output_ns>/prediction``, its
-95 % radii ``<ns>/<output_ns>/prediction_radius`` and the markers that draw both
-``<ns>/<output_ns>/prediction_markers``.
+with the same values named, ``<ns>/<output_ns>/parameters_named`` (rcl_interfaces/ParameterEvent,
+for viewers that pick values by name), ``<ns>/<output_ns>/parameter_labels`` once (std_msgs/String,
+the labels as JSON; latched), and, whenever the engine attached an anticipated path,
+``<ns>/<output_ns>/prediction``, its 95 % radii ``<ns>/<output_ns>/prediction_radius`` and the
+markers that draw both ``<ns>/<output_ns>/prediction_markers``.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 
 import numpy as np
 
 from cloe_ros.core.anticipation import CHANNELS
+from cloe_ros.core.covariance import odometry_covariance
 from cloe_ros.core.engine import NS, Estimate
 from cloe_ros.core.identifier import ROW_NAMES
 from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry_one
@@ -26,12 +30,16 @@ from cloe_ros.io.messages import (
     FLOAT64_MULTI_ARRAY,
     MARKER_ARRAY,
     ODOMETRY,
+    PARAMETER_EVENT,
     PATH,
+    STRING,
     encode_float64_multi_array,
     encode_multi_array,
+    encode_named_values,
     encode_odometry,
     encode_path,
     encode_prediction_markers,
+    encode_string,
 )
 from cloe_ros.settings import check_fields, default
 
@@ -58,6 +66,20 @@ PARAMETER_LABELS: tuple[str, ...] = tuple(
 #: Layout of ``<output_ns>/prediction_radius``: one row per pose of the prediction of the same
 #: stamp, holding the pose's stamp (s since the epoch) and its 95 % radius (m).
 RADIUS_COLUMNS = 'stamp_s,radius_m'
+#: QoS of the latched ``<output_ns>/parameter_labels`` (as a bag's offered_qos_profiles entry):
+#: reliable, transient local, depth 1, so a viewer that connects later still gets it.
+LATCHED_QOS = {
+    'history': 'keep_last', 'depth': 1, 'reliability': 'reliable',
+    'durability': 'transient_local', 'deadline': {'sec': 0, 'nsec': 0},
+    'lifespan': {'sec': 0, 'nsec': 0}, 'liveliness': 'automatic',
+    'liveliness_lease_duration': {'sec': 0, 'nsec': 0}, 'avoid_ros_namespace_conventions': False,
+}  # fmt: skip
+
+
+def parameter_labels_text() -> str:
+    """``<output_ns>/parameter_labels``: ``PARAMETER_LABELS`` as a JSON array, in the order of
+    ``parameters``' ``data`` (``data[i]`` is named by element ``i``)."""
+    return json.dumps(list(PARAMETER_LABELS))
 
 
 def join_topic(*parts: str) -> str:
@@ -104,6 +126,9 @@ class OutputEncoder:
         self.prediction_topic = join_topic(vehicle, config.output_ns, 'prediction')
         self.radius_topic = join_topic(vehicle, config.output_ns, 'prediction_radius')
         self.markers_topic = join_topic(vehicle, config.output_ns, 'prediction_markers')
+        self.labels_topic = join_topic(vehicle, config.output_ns, 'parameter_labels')
+        self.named_topic = join_topic(vehicle, config.output_ns, 'parameters_named')
+        self._labels_due = True  # the labels go out with the first parameters (bags)
         self._period_ns = round(NS / config.parameters_rate)
         #: How long a prediction's markers stay drawn: until the next one, and some.
         self.marker_lifetime_ns = NS
@@ -111,9 +136,22 @@ class OutputEncoder:
         self._prediction_status = 0
 
     @property
+    def latched_topics(self) -> dict[str, str]:
+        """Output topics published once, latched (``LATCHED_QOS``), and their message types."""
+        return {self.labels_topic: STRING}
+
+    def take_labels(self) -> tuple[str, bytes]:
+        """``(topic, cdr)`` of ``parameter_labels``, which :meth:`encode` then no longer emits
+        (the node publishes it at start-up on a latched publisher)."""
+        self._labels_due = False
+        return self.labels_topic, encode_string(parameter_labels_text())
+
+    @property
     def topics(self) -> dict[str, str]:
-        """Output topic names and their message types."""
-        topics = {self.state_topic: ODOMETRY, self.parameters_topic: FLOAT64_MULTI_ARRAY}
+        """Output topic names and their message types (every one :meth:`encode` emits, the
+        latched ones too)."""
+        topics = {self.state_topic: ODOMETRY, self.parameters_topic: FLOAT64_MULTI_ARRAY,
+                  self.named_topic: PARAMETER_EVENT, **self.latched_topics}  # fmt: skip
         if self.predictions:
             topics[self.prediction_topic] = PATH
             topics[self.radius_topic] = FLOAT64_MULTI_ARRAY
@@ -137,10 +175,15 @@ class OutputEncoder:
         slot = estimate.stamp_ns // self._period_ns
         if self._last_slot is None or slot > self._last_slot:
             self._last_slot = slot
-            out.append(
-                (self.parameters_topic, estimate.stamp_ns,
-                 encode_parameters(estimate, self._prediction_status))
-            )  # fmt: skip
+            if self._labels_due:
+                topic, labels = self.take_labels()
+                out.append((topic, estimate.stamp_ns, labels))
+            values = parameter_vector(estimate, self._prediction_status)
+            out.append((self.parameters_topic, estimate.stamp_ns,
+                        encode_float64_multi_array(PARAMETER_LABELS, values)))
+            out.append((self.named_topic, estimate.stamp_ns,
+                        encode_named_values(estimate.stamp_ns, self.parameters_topic,
+                                            PARAMETER_LABELS, values)))
         return out
 
     def reset(self) -> None:
@@ -148,11 +191,18 @@ class OutputEncoder:
 
 
 def encode_state(estimate: Estimate, world_frame: str, child_frame: str) -> bytes:
-    """``cloe/state``: the estimated state as Odometry (pose in world, twist in body, REP-105)."""
+    """``cloe/state``: the estimated state as Odometry (pose in world, twist in body, REP-105),
+    with the estimate's error covariances (6x6 row-major each,
+    :func:`~cloe_ros.core.covariance.odometry_covariance`; zeros without ``error_variance``)."""
     position, quaternion, v_body, w_body = state_to_odometry_one(estimate.zeta_hat)
+    pose_cov = twist_cov = None
+    if estimate.error_variance is not None:
+        pose, twist = odometry_covariance(estimate.zeta_hat, estimate.error_variance)
+        pose_cov, twist_cov = pose.ravel(), twist.ravel()
     return encode_odometry(
         OdometrySample(
-            estimate.stamp_ns, world_frame, child_frame, position, quaternion, v_body, w_body
+            estimate.stamp_ns, world_frame, child_frame, position, quaternion, v_body, w_body,
+            pose_cov, twist_cov,
         )
     )
 

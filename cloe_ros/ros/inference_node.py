@@ -24,11 +24,11 @@ from dataclasses import replace
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
-from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.msg import ParameterEvent, ParameterType
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -60,6 +60,8 @@ OUTPUT_TYPES = {
     messages.FLOAT64_MULTI_ARRAY: Float64MultiArray,
     messages.PATH: Path,
     messages.MARKER_ARRAY: MarkerArray,
+    messages.STRING: String,
+    messages.PARAMETER_EVENT: ParameterEvent,
 }
 #: The inputs of a vehicle, each counted in /diagnostics when DDS loses some.
 INPUTS = ('odom', 'reference', 'reference_plan')
@@ -136,6 +138,14 @@ class InferenceNode(Node):
             f'ready: {self.engine_config.estimator.algorithm} at {self.engine_config.rate:g} Hz '
             f'for {names}' + (f' ({"; ".join(notes)})' if notes else '')
         )
+
+    def _latch_parameter_labels(self, vehicle: str) -> None:
+        """Publish ``<out>/parameter_labels`` once, latched (reliable, transient local, depth 1),
+        so a viewer that connects later still gets the names of ``<out>/parameters``."""
+        topic, data = self.encoders[vehicle].take_labels()
+        publisher = self.create_publisher(String, topic, qos(depth=1, transient_local=True))
+        self.publishers_[topic] = publisher
+        publisher.publish(data)
 
     # ------------------------------------------------------------------------- parameters
 
@@ -237,9 +247,11 @@ class InferenceNode(Node):
                 event_callbacks=events,
             )  # fmt: skip
         for topic, msgtype in self.encoders[v].topics.items():
-            self.publishers_[topic] = self.create_publisher(
-                OUTPUT_TYPES[msgtype], topic, self._out_qos
-            )
+            if topic not in self.encoders[v].latched_topics:
+                self.publishers_[topic] = self.create_publisher(
+                    OUTPUT_TYPES[msgtype], topic, self._out_qos
+                )
+        self._latch_parameter_labels(v)
 
     def _on_lost(self, vehicle: str, name: str, info) -> None:
         self.lost[vehicle][name] += int(info.total_count_change)

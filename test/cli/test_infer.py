@@ -358,7 +358,8 @@ def test_outputs_of_the_contract(inferred):
     copied = {t: n for t, n in inputs.items()
               if t in ('/odom', '/reference', '/ground_truth', '/true_parameters')}  # fmt: skip
     outputs = {'/cloe/state', '/cloe/parameters', '/cloe/prediction', '/cloe/prediction_radius',
-               '/cloe/prediction_markers'}  # fmt: skip
+               '/cloe/prediction_markers', '/cloe/parameters_named',
+               '/cloe/parameter_labels'}  # fmt: skip
     assert set(counts) == outputs | set(copied)
     for topic, n in copied.items():
         assert counts[topic] == n, topic
@@ -518,6 +519,65 @@ def last_parameters(bag: Path, topic: str = '/cloe/parameters') -> dict[str, flo
 
 def labelled(params: dict[str, float], prefix: str) -> np.ndarray:
     return np.array([v for k, v in params.items() if k.startswith(prefix)])
+
+
+def test_the_bag_names_the_parameters_for_viewers(default_output):
+    """Read by the mcap library: the labels once on a latched topic (JSON, in data order), and
+    every parameters message again as named doubles (a ParameterEvent), same stamp, same values."""
+    import json
+
+    with mcap_file(default_output).open('rb') as fh:
+        summary = make_reader(fh).get_summary()
+    channels = {c.topic: c for c in summary.channels.values()}
+    schemas = summary.schemas
+    labels_channel = channels['/cloe/parameter_labels']
+    assert schemas[labels_channel.schema_id].name == 'std_msgs/msg/String'
+    qos = yaml.safe_load(labels_channel.metadata['offered_qos_profiles'])
+    assert [(q['durability'], q['reliability'], q['depth']) for q in qos] == [
+        ('transient_local', 'reliable', 1)
+    ]
+    assert schemas[channels['/cloe/parameters_named'].schema_id].name == (
+        'rcl_interfaces/msg/ParameterEvent'
+    )
+    (labels,) = decoded(default_output, '/cloe/parameter_labels')
+    assert tuple(json.loads(labels.data)) == PARAMETER_LABELS
+    params = decoded(default_output, '/cloe/parameters')
+    named = decoded(default_output, '/cloe/parameters_named')
+    assert len(named) == len(params) > 10
+    for array, event in zip(params, named):
+        assert [p.name for p in event.new_parameters] == list(PARAMETER_LABELS)
+        assert all(p.value.type == 3 for p in event.new_parameters)  # PARAMETER_DOUBLE
+        assert [p.value.double_value for p in event.new_parameters] == list(array.data)
+        assert not event.changed_parameters and not event.deleted_parameters
+        assert event.node == '/cloe/parameters'
+    # the stamps: the named message is written at its array's log time and carries it
+    with mcap_file(default_output).open('rb') as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        times = {}
+        for _, channel, message, decoded_msg in reader.iter_decoded_messages(
+            topics=['/cloe/parameters', '/cloe/parameters_named', '/cloe/parameter_labels']
+        ):
+            times.setdefault(channel.topic, []).append(message.log_time)
+            if channel.topic == '/cloe/parameters_named':
+                assert stamp(decoded_msg) == message.log_time
+    assert times['/cloe/parameters'] == times['/cloe/parameters_named']
+    assert times['/cloe/parameter_labels'] == times['/cloe/parameters'][:1]
+
+
+def test_every_state_carries_a_covariance(default_output):
+    """Each cloe/state message (read by the mcap library) has pose and twist covariances that are
+    finite, symmetric and positive-definite; the first ones are the conservative prior, later ones
+    are far smaller (statistics of the run)."""
+    states = decoded(default_output, '/cloe/state')
+    assert len(states) == 1501
+    pose = np.array([m.pose.covariance for m in states]).reshape(-1, 6, 6)
+    twist = np.array([m.twist.covariance for m in states]).reshape(-1, 6, 6)
+    for cov in (pose, twist):
+        assert np.isfinite(cov).all()
+        np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2), rtol=0, atol=1e-15)
+        assert np.linalg.eigvalsh(cov).min() > 0.0
+    np.testing.assert_allclose(np.diagonal(pose[0])[:3], 0.25)  # the prior, 0.5 m
+    assert np.diagonal(pose[-1])[:3].max() < 1e-3  # (3 cm: the run's own statistics)
 
 
 @pytest.mark.slow

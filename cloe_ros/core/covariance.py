@@ -1,0 +1,211 @@
+"""The estimator's own error statistics: a causal, running estimate of the covariance of the
+estimation error ``zeta_hat - zeta``, per state, and its REP-105 form for ``cloe/state``.
+
+What is observed at every step ``k`` is the output error ``e = z - zeta_hat`` (measured minus
+estimated), where the measurement ``z = zeta + n`` carries white noise ``n`` of variance ``R``.
+With the estimation error ``eps = zeta_hat - zeta``, ``e = n - eps``, so per state
+
+    E[e^2] = R - 2 C + P,    P = E[eps^2],    C = E[n eps]
+
+(second moments about zero, so a bias of the estimate counts as error). Without measurement noise
+``P = E[e^2]``: the output error *is* the estimation error. With noise, ``E[e^2]`` also holds the
+noise (``R``) and misses what of it the estimator passed into its estimate (``C``). Both are
+measured from the data, at high frequency, where a flying vehicle's motion is smooth and the
+noise is not:
+
+* ``R`` from the third difference of the measurement, ``d3 z_k = z_k - 3 z_k-1 + 3 z_k-2 -
+  z_k-3``: the motion cancels to ``h^3`` times its third derivative, white noise gives
+  ``E[(d3 n)^2] = 20 R``;
+* ``C`` from the third differences of measurement and estimate together. An estimator that takes
+  a fraction ``g`` of the new measurement's noise and then forgets it by ``rho`` per step
+  (``eps_k = sum_j g rho^j n_k-j + ...``) gives ``E[d3 z d3 zeta_hat] = g R f(rho)`` with
+  ``f(rho) = 19 - 12 rho + 3 rho^2 - (rho - 1)^3`` (10 at ``rho = 1``, 20 at ``rho = 0``), and
+  ``C = g R``. The observer's own forgetting is ``rho = 1 / (1 + h L)`` (its implicit ``L e``
+  step, :mod:`cloe_ros.core.estimator`), taken from the gains ``L`` of that step. Whatever of the
+  observer takes the measurement in besides ``L`` (the sliding-mode terms, ``cloe_iv``'s
+  model-error state) is measured as well: ``g`` is not assumed, only the forgetting.
+
+so ``P = E[e^2] - R + 2 C``, bounded below by ``C^2 / R`` (Cauchy-Schwarz: ``C^2 <= R P``) and
+by ``FLOOR``. The moments are exponentially weighted means with time constant ``time_constant``
+(a running mean over the first ``time_constant``, so the first samples count fully). Until
+``warmup`` s of steps have been seen since the start or a :meth:`ErrorCovariance.reset`, the
+variance is the conservative prior ``PRIOR_SIGMA`` (0.5 m, 0.5 m/s, 0.1 rad, 1 rad/s), far larger
+than the errors of any estimate that tracks its measurement. Every value is finite and positive.
+
+Calibration (``cloe evaluate sim``, docs/covariance.md): the fraction of true errors inside the
+2-sigma interval / ellipsoid is close to the Gaussian 95.4 % (1-D) and 73.9 % (3-D), with and
+without noise.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cloe_ros.core.model import N_STATES
+
+#: Conservative standard deviations before enough statistics, per state of ``zeta``: position
+#: 0.5 m, velocity 0.5 m/s, angle 0.1 rad, rate 1 rad/s.
+PRIOR_SIGMA = np.array([0.5, 0.5, 0.1, 1.0, 0.5, 0.5, 0.1, 1.0, 0.1, 1.0, 0.5, 0.5])
+#: The smallest variance reported (of any unit): the covariance stays positive-definite.
+FLOOR = 1e-14
+#: The largest (the estimator restarts long before): every value stays finite.
+CEILING = 1e12
+#: Exponentially weighted time constant of the moments, s.
+TIME_CONSTANT = 2.0
+#: Steps' worth of time, s, after which the statistics replace the prior.
+WARMUP = 1.0
+#: Third-difference weights (newest first) and ``E[(d3 n)^2] / R`` for white noise.
+D3 = np.array([1.0, -3.0, 3.0, -1.0])
+D3_NOISE = float(D3 @ D3)  # 20
+
+
+def forgetting_factor(rho: np.ndarray) -> np.ndarray:
+    """``f(rho) = E[d3 z d3 zeta_hat] / (g R)`` for an estimate ``sum_j g rho^j n_k-j`` (module
+    docstring): 10 at ``rho = 1``, 20 at ``rho = 0``."""
+    rho = np.asarray(rho, dtype=float)
+    return 19.0 - 12.0 * rho + 3.0 * rho**2 - (rho - 1.0) ** 3
+
+
+def error_variance(
+    second_moment: np.ndarray, noise: np.ndarray, cross: np.ndarray, rho: np.ndarray
+) -> np.ndarray:
+    """``P = E[e^2] - R + 2 C``, at most ``CEILING`` and at least ``FLOOR`` and two bounds (per
+    state; the module docstring derives them): ``C^2 / R`` (Cauchy-Schwarz) and
+    ``(1 - rho) / (1 + rho) R``, what the observer's ``L e`` term alone leaves of white noise in
+    its estimate (gain ``1 - rho``, memory ``rho``)."""
+    p = second_moment - noise + 2.0 * cross
+    schwarz = np.divide(cross * cross, noise, out=np.zeros_like(noise), where=noise > 0.0)
+    linear = (1.0 - rho) / (1.0 + rho) * noise
+    return np.clip(np.maximum(p, np.maximum(schwarz, linear)), FLOOR, CEILING)
+
+
+class ErrorCovariance:
+    """Running variance of ``zeta_hat - zeta`` per state (12,), from what each step gives.
+
+    Args:
+        step: The estimator's step ``h``, s.
+        time_constant: Time constant of the exponentially weighted moments, s.
+        warmup: Time of steps, s, before which :attr:`variance` is the prior.
+        prior_sigma: Standard deviations (12,) reported until then.
+
+    """
+
+    def __init__(
+        self,
+        step: float,
+        time_constant: float = TIME_CONSTANT,
+        warmup: float = WARMUP,
+        prior_sigma: np.ndarray = PRIOR_SIGMA,
+    ) -> None:
+        if not (step > 0.0 and time_constant >= step and warmup >= 0.0):
+            msg = f'need step > 0, time_constant >= step, warmup >= 0; got {step}, ' \
+                f'{time_constant}, {warmup}'
+            raise ValueError(msg)
+        self.step = float(step)
+        self.alpha = step / time_constant  # weight of a new sample once the mean is full
+        self.warmup_steps = math.ceil(warmup / step - 1e-9)
+        self.prior = np.asarray(prior_sigma, dtype=float) ** 2
+        if self.prior.shape != (N_STATES,):
+            msg = f'prior_sigma: expected ({N_STATES},) but found {self.prior.shape}'
+            raise ValueError(msg)
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the prior: the statistics start over (a reset estimator)."""
+        self.second_moment = np.zeros(N_STATES)  # E[e^2]
+        self.noise = np.zeros(N_STATES)  # R
+        self.cross = np.zeros(N_STATES)  # C
+        self.count = 0  # samples in second_moment
+        self.count_d3 = 0  # samples in noise and cross
+        self.variance = self.prior.copy()
+        self.restart()
+
+    def restart(self) -> None:
+        """A new estimator on new data (a time or position jump): the differences start over,
+        the statistics are kept."""
+        self._z: list[np.ndarray] = []  # the last four measurements, newest first
+        self._zeta_hat: list[np.ndarray] = []
+
+    def _weight(self, count: int) -> float:
+        return max(1.0 / count, self.alpha)
+
+    def update(self, measured: np.ndarray, zeta_hat: np.ndarray, gain_l: np.ndarray) -> np.ndarray:
+        """Take one step's measurement and estimate (12,) and the observer gains ``L`` (12,) it
+        stepped with; returns :attr:`variance` (12,), the estimated ``E[(zeta_hat - zeta)^2]``."""
+        e = measured - zeta_hat
+        self.count += 1
+        self.second_moment += self._weight(self.count) * (e * e - self.second_moment)
+        self._z.insert(0, np.array(measured, dtype=float))
+        self._zeta_hat.insert(0, np.array(zeta_hat, dtype=float))
+        if len(self._z) > len(D3):
+            self._z.pop()
+            self._zeta_hat.pop()
+        if len(self._z) == len(D3):
+            d3z = D3 @ np.array(self._z)
+            d3h = D3 @ np.array(self._zeta_hat)
+            rho = 1.0 / (1.0 + self.step * np.maximum(gain_l, 0.0))
+            self.count_d3 += 1
+            w = self._weight(self.count_d3)
+            self.noise += w * (d3z * d3z / D3_NOISE - self.noise)
+            self.cross += w * (d3z * d3h / forgetting_factor(rho) - self.cross)
+            self._rho = rho
+        if self.count >= self.warmup_steps and self.count_d3 > 0:
+            self.variance = error_variance(self.second_moment, self.noise, self.cross, self._rho)
+        return self.variance
+
+
+# --------------------------------------------------------------- REP-105 (nav_msgs/Odometry)
+
+#: Indices in ``zeta`` of position (x, y, z), attitude (roll, pitch, yaw), world velocity and
+#: Euler rates (roll, pitch, yaw rates).
+POSITION, ATTITUDE, VELOCITY, EULER_RATES = [0, 4, 10], [6, 2, 8], [1, 5, 11], [7, 3, 9]
+
+
+def body_jacobians(zeta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R^T, T)`` (..., 3, 3) at the state ``zeta`` (..., 12): body velocity ``= R^T v_world``
+    and body rates ``= T [roll_rate, pitch_rate, yaw_rate]`` (ZYX, as
+    :func:`~cloe_ros.core.kinematics.state_to_odometry`)."""
+    zeta = np.asarray(zeta, dtype=float)
+    roll, pitch, yaw = zeta[..., 6], zeta[..., 2], zeta[..., 8]
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    zero, one = np.zeros_like(roll), np.ones_like(roll)
+    rot = np.stack([
+        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+        np.stack([-sp, cp * sr, cp * cr], -1),
+    ], -2)  # fmt: skip
+    rates = np.stack([
+        np.stack([one, zero, -sp], -1),
+        np.stack([zero, cr, cp * sr], -1),
+        np.stack([zero, -sr, cp * cr], -1),
+    ], -2)  # fmt: skip
+    return np.swapaxes(rot, -1, -2), rates
+
+
+def odometry_covariance(zeta_hat: np.ndarray, variance: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``(pose, twist)`` covariances (..., 6, 6) of ``cloe/state`` from the per-state variances
+    (..., 12) (:class:`ErrorCovariance`) at the estimate ``zeta_hat`` (..., 12), REP-105:
+
+    * pose in the world frame, ``[x, y, z, roll, pitch, yaw]``: the variances of the position and
+      of the Euler angles (about the fixed X, Y, Z axes for small angles), no cross terms;
+    * twist in the body frame, ``[vx, vy, vz, p, q, r]``: the world-velocity variances rotated
+      into the body, ``R^T diag R``, and the Euler-rate variances mapped to body rates,
+      ``T diag T^T``.
+
+    Symmetric positive-definite wherever the Euler rates are defined (pitch within +-90 deg)."""
+    variance = np.asarray(variance, dtype=float)
+    rt, t = body_jacobians(zeta_hat)
+    shape = variance.shape[:-1]
+    pose = np.zeros((*shape, 6, 6))
+    twist = np.zeros((*shape, 6, 6))
+    idx = np.arange(3)
+    pose[..., idx, idx] = variance[..., POSITION]
+    pose[..., idx + 3, idx + 3] = variance[..., ATTITUDE]
+    linear = np.einsum('...ij,...j,...kj->...ik', rt, variance[..., VELOCITY], rt)
+    angular = np.einsum('...ij,...j,...kj->...ik', t, variance[..., EULER_RATES], t)
+    twist[..., :3, :3] = 0.5 * (linear + np.swapaxes(linear, -1, -2))
+    twist[..., 3:, 3:] = 0.5 * (angular + np.swapaxes(angular, -1, -2))
+    return pose, twist

@@ -37,7 +37,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from ros_helpers import NodeProcess, private_domain, spin_until
+from ros_helpers import NodeProcess, private_domain, spin_until, start_node
 
 from cloe_ros.cli.infer import infer_bag
 from cloe_ros.io.outputs import PARAMETER_LABELS
@@ -62,8 +62,7 @@ def ros(tmp_path: Path):
     with private_domain('online_offline_test') as ros:
 
         def start(name: str, params: dict, node_name: str | None = None) -> NodeProcess:
-            extra = ['-r', f'__node:={node_name}'] if node_name else None
-            proc = NodeProcess(name, params, ros.domain, tmp_path / 'logs', extra_args=extra)
+            proc = start_node(name, params, ros.domain, tmp_path / 'logs', node_name=node_name)
             procs.append(proc)
             return proc
 

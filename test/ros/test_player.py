@@ -18,7 +18,7 @@ from mcap.reader import make_reader
 from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
-from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
+from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until, start_node
 from rosbags.interfaces import (
     Qos,
     QosDurability,
@@ -109,7 +109,7 @@ def play_to_end(ros, player: NodeProcess, timeout: float) -> int:
 
 
 def output(player: NodeProcess) -> str:
-    return player.stdout_path.read_text() + player.stderr_path.read_text()
+    return player.output()
 
 
 def assert_same_odometry(raw_a: bytes, raw_b: bytes) -> None:
@@ -135,7 +135,7 @@ def assert_same_pose(raw_a: bytes, raw_b: bytes) -> None:
 def test_plays_every_message_with_recorded_timing(ros, tmp_path, b2_messages):
     rate = 10.0
     arrivals = Arrivals(ros.node, {'/odom': Odometry, '/reference': PoseStamped})
-    player = NodeProcess(
+    player = start_node(
         'bag_player',
         {'bag': str(B2), 'rate': rate, 'wait_for_subscribers': 1},
         ros.domain,
@@ -178,7 +178,7 @@ def test_plays_every_message_with_recorded_timing(ros, tmp_path, b2_messages):
 def test_publishes_clock(ros, tmp_path, b2_messages):
     rate, clock_rate = 10.0, 100.0
     arrivals = Arrivals(ros.node, {'/clock': Clock})
-    player = NodeProcess(
+    player = start_node(
         'bag_player',
         {
             'bag': str(B2),
@@ -216,7 +216,7 @@ def test_publishes_clock(ros, tmp_path, b2_messages):
 @needs_b2
 def test_plays_only_selected_topics(ros, tmp_path, b2_messages):
     arrivals = Arrivals(ros.node, {'/odom': Odometry, '/reference': PoseStamped})
-    player = NodeProcess(
+    player = start_node(
         'bag_player',
         {'bag': str(B2), 'rate': 20.0, 'topics': ['/odom'], 'wait_for_subscribers': 1},
         ros.domain,
@@ -257,7 +257,7 @@ def test_skips_types_without_python_package(ros, tmp_path):
     bag = tmp_path / 'bag'
     write_small_bag(bag, {'/odom': ODOMETRY, '/plane': PLANE})
     arrivals = Arrivals(ros.node, {'/odom': Odometry})
-    player = NodeProcess(
+    player = start_node(
         'bag_player',
         {'bag': str(bag), 'rate': 5.0, 'wait_for_subscribers': 1},
         ros.domain,
@@ -266,10 +266,7 @@ def test_skips_types_without_python_package(ros, tmp_path):
     status = play_to_end(ros, player, timeout=15)
     out = output(player)
     assert status == 0, out
-    assert (
-        'skipping /plane: the Python package of shape_msgs/msg/Plane is not '
-        'installed' in out
-    )
+    assert 'skipping /plane: the Python package of shape_msgs/msg/Plane is not installed' in out
     assert 'done: 50 messages' in out
     assert [decode_odometry(raw).position[0] for _, raw in arrivals.msgs['/odom']] == list(
         map(float, range(50))
@@ -298,14 +295,14 @@ def test_damaged_chunk_mid_play(ros, tmp_path):
     arrivals = Arrivals(ros.node, {'/odom': Odometry})
     # the publisher keeps every message until acknowledged: at 100x, a subscriber short of CPU
     # falls more than the default 1000 messages behind
-    player = NodeProcess(
+    player = start_node(
         'bag_player',
         {'bag': str(bag), 'rate': 100.0, 'wait_for_subscribers': 1, 'qos_depth': 10_000},
         ros.domain,
         tmp_path,
     )
     status = play_to_end(ros, player, timeout=30)
-    err = player.stderr_path.read_text()
+    err = player.errors()
     assert status == 1, output(player)
     assert f'{mcap}: corrupt chunk at byte offset {chunks[1].chunk_start_offset}' in err
     assert 'differ from the message index' in err and f'cloe bag recover {bag}' in err
@@ -319,12 +316,12 @@ def test_damaged_chunk_mid_play(ros, tmp_path):
 
 @needs_b2
 def test_stops_cleanly_on_sigint(ros, tmp_path):
-    player = NodeProcess('bag_player', {'bag': str(B2)}, ros.domain, tmp_path)
+    player = start_node('bag_player', {'bag': str(B2)}, ros.domain, tmp_path)
     try:
-        assert player.wait_for_output('playing', timeout=15), output(player)
+        assert player.wait_for('playing', timeout=15), output(player)
     finally:
         status = player.stop(signal.SIGINT, timeout=10)
-    err = player.stderr_path.read_text()
+    err = player.errors()
     assert status == 0, output(player)
     assert 'Traceback' not in err and 'ERROR' not in err
     assert 'done:' not in output(player)
@@ -335,7 +332,7 @@ def test_wait_timeout_and_start_delay(ros, tmp_path):
     bag = tmp_path / 'bag'
     write_small_bag(bag, {'/odom': ODOMETRY}, n=20)
     params = {'bag': str(bag), 'wait_for_subscribers': 2, 'wait_timeout': 0.5, 'start_delay': 0.5}
-    player = NodeProcess('bag_player', params, ros.domain, tmp_path)
+    player = start_node('bag_player', params, ros.domain, tmp_path)
     status = play_to_end(ros, player, timeout=15)
     out = output(player)
     assert status == 0, out
@@ -399,12 +396,12 @@ def test_refuses_to_start(tmp_path, params, expected):
         write_small_bag(tmp_path / 'plane', {'/plane': PLANE}, n=5)
     elif str(B2) in params.values() and not B2.is_dir():
         pytest.skip(f'{B2} not available')
-    player = NodeProcess('bag_player', params, reserve_domain_id(), tmp_path)
+    player = start_node('bag_player', params, reserve_domain_id(), tmp_path)
     try:
         status = player.wait(15)
     finally:
         player.stop()
-    err = player.stderr_path.read_text()
+    err = player.errors()
     assert status == 1, output(player)
     assert expected in err
     assert 'Traceback' not in err
@@ -530,7 +527,7 @@ def test_start_offset(ros, tmp_path):
     arrivals = Arrivals(ros.node, {'/odom': Odometry, '/clock': Clock})
     params = {'bag': str(bag), 'start_offset': 0.2, 'publish_clock': True, 'rate': 2.0,
               'wait_for_subscribers': 1}  # fmt: skip
-    player = NodeProcess('bag_player', params, ros.domain, tmp_path)
+    player = start_node('bag_player', params, ros.domain, tmp_path)
     matched = spin_until(
         ros.executor, lambda: arrivals.subs['/clock'].get_publisher_count() >= 1, timeout=10
     )
@@ -553,7 +550,7 @@ def test_loop_plays_every_pass_from_the_offset(ros, tmp_path):
     arrivals = Arrivals(ros.node, {'/odom': Odometry, '/clock': Clock})
     params = {'bag': str(bag), 'loop': True, 'start_offset': 0.3, 'publish_clock': True,
               'rate': 5.0, 'wait_for_subscribers': 1}  # fmt: skip
-    player = NodeProcess('bag_player', params, ros.domain, tmp_path)
+    player = start_node('bag_player', params, ros.domain, tmp_path)
     try:
         matched = spin_until(
             ros.executor, lambda: arrivals.subs['/clock'].get_publisher_count() >= 1, timeout=10

@@ -33,7 +33,7 @@ from rclpy.duration import Duration
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
+from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until, start_node
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosDurability, QosReliability
 from rosgraph_msgs.msg import Clock
@@ -124,13 +124,13 @@ class Diagnostics:
 
 def logs(rec: NodeProcess) -> str:
     """Everything the process wrote (also after stop(), which closes its files)."""
-    return rec.stdout_path.read_text() + rec.stderr_path.read_text()
+    return rec.output()
 
 
 def start_recorder(ros, tmp_path: Path, **params) -> NodeProcess:
     params.setdefault('output', str(tmp_path / 'bag'))
-    rec = NodeProcess('bag_recorder', params, ros.domain, tmp_path)
-    if not rec.wait_for_output('recording to', timeout=20):
+    rec = start_node('bag_recorder', params, ros.domain, tmp_path)
+    if not rec.wait_for('recording to', timeout=20):
         rec.stop(signal.SIGKILL)
         pytest.fail(f'recorder did not start:\n{logs(rec)}')
     return rec
@@ -460,9 +460,7 @@ def test_invalid_parameters_stop_the_node_with_a_reason(
     tmp_path: Path, params: dict, reason: str
 ) -> None:
     domain = reserve_domain_id()
-    rec = NodeProcess(
-        'bag_recorder', {'output': str(tmp_path / 'bag'), **params}, domain, tmp_path
-    )
+    rec = start_node('bag_recorder', {'output': str(tmp_path / 'bag'), **params}, domain, tmp_path)
     try:
         status = rec.wait(20)
     finally:
@@ -476,7 +474,7 @@ def test_invalid_parameters_stop_the_node_with_a_reason(
 def test_existing_output_stops_the_node(tmp_path: Path) -> None:
     (tmp_path / 'bag').mkdir()
     (tmp_path / 'bag' / 'keep').write_text('x')
-    rec = NodeProcess('bag_recorder', {'output': 'bag'}, reserve_domain_id(), tmp_path)
+    rec = start_node('bag_recorder', {'output': 'bag'}, reserve_domain_id(), tmp_path)
     try:
         status = rec.wait(20)
     finally:

@@ -54,7 +54,7 @@ from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from nav_msgs.msg import Odometry
-from ros_helpers import NodeProcess, private_domain, spin_until
+from ros_helpers import NodeProcess, private_domain, spin_until, start_node
 
 from cloe_ros.core.model import PARAMETER_NAMES
 from cloe_ros.io.dataset import load_flight
@@ -130,8 +130,7 @@ def system(tmp_path: Path):
     with private_domain('system_test') as ros:
 
         def start(name: str, params: dict, node_name: str | None = None) -> NodeProcess:
-            extra = ['-r', f'__node:={node_name}'] if node_name else None
-            proc = NodeProcess(name, params, ros.domain, tmp_path / 'logs', extra_args=extra)
+            proc = start_node(name, params, ros.domain, tmp_path / 'logs', node_name=node_name)
             procs.append(proc)
             return proc
 
@@ -150,12 +149,12 @@ def system(tmp_path: Path):
 
 def logs(proc: NodeProcess) -> str:
     """Everything the process wrote (also after stop(), which closes its files)."""
-    return proc.stdout_path.read_text() + proc.stderr_path.read_text()
+    return proc.output()
 
 
 def wait_for_lines(proc: NodeProcess, *lines: str, timeout: float = 30.0) -> None:
     for line in lines:
-        if not proc.wait_for_output(line, timeout):
+        if not proc.wait_for(line, timeout):
             pytest.fail(f'{proc.name} did not log {line!r}:\n{logs(proc)}')
 
 

@@ -605,6 +605,10 @@ class PlayerNode(Node):
                 self._playing = True
             self.passes += 1
             next_tick = self._anchor[0]
+            # a tick published late, after a resume or a rate change moved the anchor past its
+            # wall time, would map to a bag time before the last one: /clock never goes back
+            # within a pass (it jumps back only at the start of the next)
+            last_clock_ns = first
             while item is not _END and item is not _PASS_END:
                 if isinstance(item, BaseException):
                     raise item
@@ -617,7 +621,8 @@ class PlayerNode(Node):
                         return
                     if next_tick <= self._wall_time(log_ns):
                         with self._cond:
-                            now_ns = min(max(self._bag_time(next_tick), first), bag.end_ns)
+                            now_ns = min(max(self._bag_time(next_tick), last_clock_ns), bag.end_ns)
+                        last_clock_ns = now_ns
                         clock.publish(encode_clock(now_ns))
                         next_tick += period
                         continue

@@ -184,7 +184,7 @@ def test_cloe_live_on_a_port_in_use(tmp_path):
         proc = subprocess.run(
             [executable('cloe'), 'live', '--host', '127.0.0.1', '--port', str(port)],
             env=ros_env(reserve_domain_id(), tmp_path / 'ros_log'),
-            capture_output=True, text=True, timeout=60,
+            capture_output=True, text=True, timeout=300,
         )  # fmt: skip
     finally:
         holder.stop()

@@ -128,8 +128,8 @@ def sim_time_lag(folder: Path) -> dict[str, tuple[float, float]]:
     procs = [recorder, inference]
     try:
         wait_for(inference, 'ready:')
-        for topic in topics:
-            wait_for(recorder, f'recording {topic} (')
+        # (the simulator's topics are subscribed once it runs: it waits for both subscribers)
+        wait_for(recorder, 'recording /cloe/state (')
         sim = start('quadrotor_sim', {
             'duration': 8.0, 'real_time_factor': 2.0, 'sim_rate': 500.0, 'publish_clock': True,
             'wait_for_subscribers': 2, 'qos_depth': 2000, 'shutdown_when_done': True,

@@ -84,6 +84,12 @@ SIM = {
     # Vicon-like noise (cloe_ros.core.simulator.TYPICAL_NOISE): odom is not the truth
     'noise_position': 0.002, 'noise_velocity': 0.01, 'noise_angle': 0.002, 'noise_rate': 0.01,
 }  # fmt: skip
+#: Every inference node's settings besides its own. ``reference_timeout`` 60 s: the engine waits
+#: for the reference of each step, as it always does when odometry and reference come together;
+#: with the default 0.25 s, a node short of CPU that takes a burst of odometry before the
+#: references sent with it steps on the held reference, and its estimates then depend on the
+#: scheduler (the rule is tested in test/core/test_engine.py).
+INFERENCE = {'qos_depth': DEPTH, 'reference_timeout': 60.0}
 ODOMETRY, POSE = 'nav_msgs/msg/Odometry', 'geometry_msgs/msg/PoseStamped'
 ARRAY, PATH = 'std_msgs/msg/Float64MultiArray', 'nav_msgs/msg/Path'
 DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
@@ -176,7 +182,7 @@ def fly(system, subscribers: int, sim_params: dict, inference: dict[str, dict],
         'output': str(system.bag), 'topics': topics, 'qos_depth': DEPTH, **(recorder_params or {})
     })  # fmt: skip
     procs = {
-        name: system.start('cloe_inference', {'qos_depth': DEPTH, **params}, node_name=name)
+        name: system.start('cloe_inference', {**INFERENCE, **params}, node_name=name)
         for name, params in inference.items()
     }
     for proc in procs.values():

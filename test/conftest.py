@@ -30,3 +30,12 @@ os.environ.setdefault('MPLBACKEND', 'Agg')
 def pytest_report_header(config) -> str:
     worker = os.environ.get('PYTEST_XDIST_WORKER', 'main process')
     return f'ROS_DOMAIN_ID {DOMAIN_ID} ({worker}); each process-level test reserves its own'
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Modules with a test of the slow tier first (each module kept together, so its module
+    fixtures are made once per worker), in collection order, then the rest: the parallel workers
+    start on the long tests and the short ones fill in around them, instead of one long test
+    ending the run alone."""
+    slow_modules = {item.module for item in items if item.get_closest_marker('slow')}
+    items.sort(key=lambda item: item.module not in slow_modules)

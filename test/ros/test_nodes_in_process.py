@@ -560,8 +560,11 @@ def test_diagnostics_name_each_vehicle_by_its_recorded_namespace(context, namesp
 
 def test_a_vehicle_whose_odometry_stops_is_reported_silent(context, monkeypatch):
     """Once a started vehicle has had no odometry for STALE_AFTER s of wall time, its status
-    turns WARN and says for how long; it is OK while the odometry flows."""
-    monkeypatch.setattr(inference_node, 'STALE_AFTER', 0.3)
+    turns WARN and says for how long; it is OK while the odometry flows. (While it flows,
+    STALE_AFTER is 60 s: a test process short of CPU may be held for longer than 0.3 s between the
+    last odometry and the status; the silence it reports is checked against the wall time the
+    test measured around it.)"""
+    monkeypatch.setattr(inference_node, 'STALE_AFTER', 60.0)
     inf = InferenceNode(context=context)
     try:
         zeta, r = np.zeros(12), np.array([0.0, 0.0, 0.0, 1.0])
@@ -570,11 +573,15 @@ def test_a_vehicle_whose_odometry_stops_is_reported_silent(context, monkeypatch)
         for k in range(20):
             stamp = 1_000_000_000_000 + k * 10_000_000
             ref_cb(_ref_bytes(stamp, r))
+            before_last = time.monotonic()
             odom_cb(_odom_bytes(stamp, zeta))
         flowing = inf.vehicle_status('', 0.0)
+        since_last = time.monotonic() - before_last
         assert inf.engines[''].started
         assert flowing.level == messages.OK, flowing.message
-        assert float(dict(flowing.values)['odom_silent_s']) < 0.3
+        # (reported to 0.1 s)
+        assert 0.0 <= float(dict(flowing.values)['odom_silent_s']) <= since_last + 0.05
+        monkeypatch.setattr(inference_node, 'STALE_AFTER', 0.3)
         time.sleep(0.4)
         silent = inf.vehicle_status('', 0.0)
         assert silent.level == messages.WARN

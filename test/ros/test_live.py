@@ -132,7 +132,7 @@ def relay_on_a_domain():
 def test_channels_and_one_message_per_channel(relay_on_a_domain):
     expected, port, relay = relay_on_a_domain
     url = f'ws://127.0.0.1:{port}'
-    with websockets_client.connect(url, subprotocols=[SUBPROTOCOL], open_timeout=10) as ws:
+    with websockets_client.connect(url, subprotocols=[SUBPROTOCOL], open_timeout=60) as ws:
         assert ws.subprotocol == SUBPROTOCOL
         deadline = time.monotonic() + 60
         channels = {}

@@ -381,9 +381,9 @@ def test_damaged_chunk_mid_play(ros, tmp_path):
 def test_stops_cleanly_on_sigint(ros, tmp_path):
     player = start_node('bag_player', {'bag': str(B2)}, ros.domain, tmp_path)
     try:
-        assert player.wait_for('playing', timeout=15), output(player)
+        assert player.wait_for('playing', timeout=TIMEOUT), output(player)
     finally:
-        status = player.stop(signal.SIGINT, timeout=10)
+        status = player.stop(signal.SIGINT, timeout=TIMEOUT)
     err = player.errors()
     assert status == 0, output(player)
     assert 'Traceback' not in err and 'ERROR' not in err

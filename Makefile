@@ -1,6 +1,7 @@
 # cloe_ros: the two commands of the README work on a fresh machine (Python 3.10-3.13, x86_64):
 #   make demo   set everything up, run the main job
-#   make test   set everything up, run the test suite
+#   make test   set everything up, run the test suite (TEST_WORKERS processes in parallel)
+#   make test-under-load   the same, while busy loops occupy every core
 # Both create ./.venv, install the ROS 2 Jazzy wheels and the pinned requirements into it, then
 # install this package with a regular (non-editable) install so its data files and ament index
 # marker exist, as `ros2 run` on a ROS machine expects.
@@ -15,6 +16,9 @@ SOURCES := setup.py setup.cfg package.xml $(shell find cloe_ros config resource 
 	-not -name '*.pyc' 2>/dev/null) $(shell find bags -type f 2>/dev/null)
 DEMO_ARGS ?=
 TEST_ARGS ?=
+# parallel test processes (pytest-xdist); each reserves a DDS domain of its own (test/conftest.py)
+TEST_WORKERS ?= auto
+PYTEST := $(BIN)/python -m pytest test -n $(TEST_WORKERS) --dist worksteal
 
 # DDS stays on this machine; rcl logs go to the work tree, not ~/.ros.
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
@@ -22,13 +26,17 @@ export ROS_LOG_DIR ?= $(CURDIR)/.ros_log
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 export MPLBACKEND := Agg
 
-.PHONY: demo test install lint clean
+.PHONY: demo test test-under-load install lint clean
 
 demo: $(VENV)/.installed
 	$(BIN)/cloe demo $(DEMO_ARGS)
 
 test: $(VENV)/.installed
-	$(BIN)/python -m pytest test $(TEST_ARGS)
+	$(PYTEST) $(TEST_ARGS)
+
+# one busy loop per core for as long as the suite runs, stopped whatever its outcome
+test-under-load: $(VENV)/.installed
+	$(BIN)/python scripts/under_load.py -- $(PYTEST) $(TEST_ARGS)
 
 install: $(VENV)/.installed
 
@@ -45,7 +53,7 @@ $(VENV)/.installed: $(VENV)/.deps $(SOURCES)
 
 lint: $(VENV)/.installed
 	$(BIN)/pip install ruff==0.17.6 >/dev/null
-	$(BIN)/ruff check cloe_ros test
+	$(BIN)/ruff check cloe_ros test scripts
 
 clean:
 	rm -rf $(VENV) build *.egg-info .ros_log .pytest_cache

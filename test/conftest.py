@@ -1,4 +1,12 @@
-"""Test-wide settings: DDS on this machine only, a domain id of our own, rcl logs out of ~/.ros."""
+"""Test-wide settings: DDS on this machine only, a domain id of our own, rcl logs out of ~/.ros.
+
+Every test process holds DDS domains no other process on the machine holds
+(:func:`~cloe_ros.cli.processes.reserve_domain_id`, a lock file per id): with ``pytest -n N``
+(pytest-xdist, as ``make test`` runs it) each worker process imports this file and so reserves its
+own ``ROS_DOMAIN_ID`` for the contexts its in-process tests create, and process-level tests
+reserve one more each (``private_domain``). Two workers, or two suites run side by side from
+different work trees, never see each other's nodes.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +20,22 @@ sys.path.insert(0, str(Path(__file__).parent))
 from ros_helpers import reserve_domain_id
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-os.environ['ROS_DOMAIN_ID'] = str(reserve_domain_id())
+#: This process's domain: the xdist controller's, or one worker's (``PYTEST_XDIST_WORKER``).
+DOMAIN_ID = reserve_domain_id()
+os.environ['ROS_DOMAIN_ID'] = str(DOMAIN_ID)
 os.environ.setdefault('ROS_LOG_DIR', os.path.join(tempfile.gettempdir(), 'cloe_ros_test_logs'))
 os.environ.setdefault('MPLBACKEND', 'Agg')
+
+
+def pytest_report_header(config) -> str:
+    worker = os.environ.get('PYTEST_XDIST_WORKER', 'main process')
+    return f'ROS_DOMAIN_ID {DOMAIN_ID} ({worker}); each process-level test reserves its own'
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Modules with a test of the slow tier first (each module kept together, so its module
+    fixtures are made once per worker), in collection order, then the rest: the parallel workers
+    start on the long tests and the short ones fill in around them, instead of one long test
+    ending the run alone."""
+    slow_modules = {item.module for item in items if item.get_closest_marker('slow')}
+    items.sort(key=lambda item: item.module not in slow_modules)

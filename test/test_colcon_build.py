@@ -41,17 +41,17 @@ def test_colcon_build_gives_the_ament_layout(tmp_path):
     found = subprocess.run(
         [sys.executable, '-c', 'from ament_index_python.packages import '
          "get_package_share_directory as g; print(g('cloe_ros'))"],
-        env=env, capture_output=True, text=True, timeout=60,
+        env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert found.returncode == 0, found.stderr
     assert Path(found.stdout.strip()) == prefix / 'share' / 'cloe_ros'
     run = subprocess.run(
         [str(prefix / 'lib' / 'cloe_ros' / 'cloe'), '--version'],
-        env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path,
+        env=env, capture_output=True, text=True, timeout=300, cwd=tmp_path,
     )  # fmt: skip
     assert run.returncode == 0 and run.stdout.startswith('cloe '), run.stderr
     imported = subprocess.run(
         [sys.executable, '-c', 'import cloe_ros; print(cloe_ros.__file__)'],
-        env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path,
+        env=env, capture_output=True, text=True, timeout=300, cwd=tmp_path,
     )  # fmt: skip
     assert imported.stdout.strip().startswith(str(site)), imported.stdout

@@ -10,6 +10,10 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 NODE_MODULES = {
     'quadrotor_sim': 'cloe_ros.ros.sim_node',
@@ -66,7 +70,12 @@ def param_args(params: dict[str, object]) -> list[str]:
 
 
 class NodeProcess:
-    """One node in its own process (``python -m <module>``), output captured to a log file."""
+    """One node in its own process (and process group), its output captured to files.
+
+    By default the node runs as ``python -m <module>`` (:data:`NODE_MODULES`); ``command``
+    runs another program in its place, e.g. the installed console script. Standard output goes
+    to ``log_path``, and so does standard error unless ``stderr_path`` is given. ``node_name``
+    renames the node (``-r __node:=<name>``); ``extra_args`` come after the parameters."""
 
     def __init__(
         self,
@@ -75,23 +84,50 @@ class NodeProcess:
         env: dict[str, str],
         log_path: Path,
         node_name: str | None = None,
+        *,
+        extra_args: Sequence[str] = (),
+        command: Sequence[str] | None = None,
+        stderr_path: Path | None = None,
+        cwd: Path | None = None,
     ) -> None:
         self.name = node_name or executable
         self.log_path = log_path
+        self.stderr_path = stderr_path
         self._log = open(log_path, 'w')
-        args = [sys.executable, '-m', NODE_MODULES[executable], '--ros-args']
+        self._err = open(stderr_path, 'w') if stderr_path is not None else None
+        args = [*(command or [sys.executable, '-m', NODE_MODULES[executable]]), '--ros-args']
         if node_name:
             args += ['-r', f'__node:={node_name}']
-        args += param_args(params)
+        args += [*param_args(params), *extra_args]
         self.proc = subprocess.Popen(
-            args, env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True
+            args,
+            env=env,
+            stdout=self._log,
+            stderr=self._err if self._err is not None else subprocess.STDOUT,
+            cwd=cwd,
+            start_new_session=True,
         )
 
     def output(self) -> str:
-        self._log.flush()
-        return self.log_path.read_text(errors='replace')
+        """Everything the process wrote so far (standard output, then standard error if it has
+        a file of its own); also after :meth:`stop`."""
+        text = ''
+        for fh, path in ((self._log, self.log_path), (self._err, self.stderr_path)):
+            if fh is not None and path is not None:
+                if not fh.closed:
+                    fh.flush()
+                text += path.read_text(errors='replace')
+        return text
+
+    def errors(self) -> str:
+        """What the process wrote to standard error (all its output if that was not separate)."""
+        if self.stderr_path is None:
+            return self.output()
+        return self.stderr_path.read_text(errors='replace')
 
     def wait_for(self, text: str, timeout: float) -> bool:
+        """Whether ``text`` appears in the output within ``timeout`` s (False at once if the
+        process ends without it)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if text in self.output():
@@ -101,8 +137,14 @@ class NodeProcess:
             time.sleep(0.05)
         return text in self.output()
 
+    def wait(self, timeout: float) -> int:
+        """The exit status, once the process has ended (``subprocess.TimeoutExpired`` after
+        ``timeout`` s)."""
+        return self.proc.wait(timeout)
+
     def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
-        """Signal the node and wait for it; SIGKILL after ``timeout`` s. Returns the status."""
+        """Signal the node and wait for it; SIGKILL after ``timeout`` s. Returns the status
+        (nothing is sent to a process that has ended)."""
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
             try:
@@ -111,4 +153,6 @@ class NodeProcess:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait(10)
         self._log.close()
+        if self._err is not None:
+            self._err.close()
         return self.proc.returncode

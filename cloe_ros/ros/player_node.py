@@ -55,8 +55,8 @@ READ_AHEAD_BYTES = 64 * 2**20
 #: Waits longer than this sleep on the condition (woken by a rate change or shutdown); the rest is
 #: one short ``time.sleep``.
 COARSE_WAIT_S = 0.002
-#: How long the end of playback waits for reliable subscribers to acknowledge the last messages:
-#: longer than Fast DDS's default heartbeat period (3 s).
+#: How long the end of playback waits for reliable subscribers to acknowledge the last messages
+#: (the default of ``ack_timeout``): longer than Fast DDS's default heartbeat period (3 s).
 ACK_TIMEOUT_S = 3.5
 _END = object()
 #: Between two passes of a looping player: the next pass starts again from ``start_offset``.
@@ -291,6 +291,17 @@ class PlayerNode(Node):
             'qos_depth',
             1000,
             d('history depth of the publishers', read_only=ro, int_range=(1, 1_000_000)),
+        )
+        self.ack_timeout = common.declare(
+            self,
+            'ack_timeout',
+            ACK_TIMEOUT_S,
+            d(
+                'at the end of playback (also of a damaged bag), the longest wait for reliable '
+                'subscribers to acknowledge the last messages, s',
+                read_only=ro,
+                float_range=(0.0, 3600.0),
+            ),
         )
         if not isinstance(self.bag_path, str) or not self.bag_path.strip():
             # -p "bag:=  " reaches rclpy as YAML null: a parameter without a value
@@ -554,7 +565,7 @@ class PlayerNode(Node):
     def _wait_for_acks(self) -> None:
         """Give reliable subscribers time to acknowledge the last messages before shutdown (Fast
         DDS asks for acknowledgements with its periodic heartbeat, every 3 s by default)."""
-        deadline = time.monotonic() + ACK_TIMEOUT_S
+        deadline = time.monotonic() + self.ack_timeout
         unacked = []
         for topic, pub in self._publishers_by_topic.items():
             remaining = max(0.0, deadline - time.monotonic())
@@ -562,7 +573,7 @@ class PlayerNode(Node):
                 unacked.append(topic)
         if unacked:
             self.get_logger().warning(
-                f'not acknowledged by every subscriber within {ACK_TIMEOUT_S:g} s: '
+                f'not acknowledged by every subscriber within {self.ack_timeout:g} s: '
                 f'{", ".join(unacked)} (the last messages may not have arrived)'
             )
 
@@ -594,6 +605,10 @@ class PlayerNode(Node):
                 self._playing = True
             self.passes += 1
             next_tick = self._anchor[0]
+            # a tick published late, after a resume or a rate change moved the anchor past its
+            # wall time, would map to a bag time before the last one: /clock never goes back
+            # within a pass (it jumps back only at the start of the next)
+            last_clock_ns = first
             while item is not _END and item is not _PASS_END:
                 if isinstance(item, BaseException):
                     raise item
@@ -606,7 +621,8 @@ class PlayerNode(Node):
                         return
                     if next_tick <= self._wall_time(log_ns):
                         with self._cond:
-                            now_ns = min(max(self._bag_time(next_tick), first), bag.end_ns)
+                            now_ns = min(max(self._bag_time(next_tick), last_clock_ns), bag.end_ns)
+                        last_clock_ns = now_ns
                         clock.publish(encode_clock(now_ns))
                         next_tick += period
                         continue

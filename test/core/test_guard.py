@@ -3,6 +3,8 @@ model made wrong on purpose is not followed, and the 95 % radius holds 90-98 % o
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -18,12 +20,18 @@ pytestmark = pytest.mark.slow
 HORIZON_POSES = (5, 10, 20, 50)  # 0.5, 1, 2, 5 s at the default 0.1 s step
 
 
+@functools.cache
 def simulated(scenario: str, duration: float):
+    """The flight (seeded: the same for the same arguments), simulated once per process: the
+    guard's two runs share it. Read-only arrays, so no run can change another's input."""
     sim = QuadrotorSimulator(SCENARIOS[scenario], disturbance=PaperDisturbance(),
                              noise=TYPICAL_NOISE, dt=1 / 500,
                              rng=np.random.default_rng(0))  # fmt: skip
     res = sim.run(duration)
-    return res.t[::5], res.measured[::5, 0], res.reference[::5, 0], res.t, res.zeta[:, 0]
+    out = (res.t[::5], res.measured[::5, 0], res.reference[::5, 0], res.t, res.zeta[:, 0])
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 class WrongModel:

@@ -132,7 +132,7 @@ def relay_on_a_domain():
 def test_channels_and_one_message_per_channel(relay_on_a_domain):
     expected, port, relay = relay_on_a_domain
     url = f'ws://127.0.0.1:{port}'
-    with websockets_client.connect(url, subprotocols=[SUBPROTOCOL], open_timeout=10) as ws:
+    with websockets_client.connect(url, subprotocols=[SUBPROTOCOL], open_timeout=60) as ws:
         assert ws.subprotocol == SUBPROTOCOL
         deadline = time.monotonic() + 60
         channels = {}
@@ -184,7 +184,7 @@ def test_cloe_live_on_a_port_in_use(tmp_path):
         proc = subprocess.run(
             [executable('cloe'), 'live', '--host', '127.0.0.1', '--port', str(port)],
             env=ros_env(reserve_domain_id(), tmp_path / 'ros_log'),
-            capture_output=True, text=True, timeout=60,
+            capture_output=True, text=True, timeout=300,
         )  # fmt: skip
     finally:
         holder.stop()

@@ -37,12 +37,21 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from ros_helpers import NodeProcess, private_domain, spin_until
+from ros_helpers import NodeProcess, private_domain, spin_until, start_node
 
 from cloe_ros.cli.infer import infer_bag
 from cloe_ros.io.outputs import PARAMETER_LABELS
 
-from .test_system import RecorderCounts, gate, interrupt, logs, read_bag, stamp, wait_for_lines
+from .test_system import (
+    TIMEOUT,
+    RecorderCounts,
+    gate,
+    interrupt,
+    logs,
+    read_bag,
+    stamp,
+    wait_for_lines,
+)
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -62,8 +71,7 @@ def ros(tmp_path: Path):
     with private_domain('online_offline_test') as ros:
 
         def start(name: str, params: dict, node_name: str | None = None) -> NodeProcess:
-            extra = ['-r', f'__node:={node_name}'] if node_name else None
-            proc = NodeProcess(name, params, ros.domain, tmp_path / 'logs', extra_args=extra)
+            proc = start_node(name, params, ros.domain, tmp_path / 'logs', node_name=node_name)
             procs.append(proc)
             return proc
 
@@ -80,7 +88,7 @@ def settings(algorithm: str) -> dict:
     return {'algorithm': algorithm, 'output_ns': algorithm, 'reference_timeout': 60.0}
 
 
-def wait_for_counts(ros, wanted: dict[str, int], timeout: float = 60.0) -> None:
+def wait_for_counts(ros, wanted: dict[str, int], timeout: float = TIMEOUT) -> None:
     """Until the recorder's reports show ``wanted`` received counts twice in a row."""
     reports = ros.counts.reports
     first = len(reports)
@@ -107,7 +115,7 @@ def record_input_bag(ros, bag: Path) -> None:
         'noise_rate': 0.01,
     })  # fmt: skip
     gated = gate(ros.node, recorder, sim, topics)  # the 2nd subscribers, once all are heard
-    wait_for_lines(sim, 'done: ', timeout=DURATION + 60.0)
+    wait_for_lines(sim, 'done: ', timeout=DURATION + TIMEOUT)
     wait_for_counts(ros, dict.fromkeys(topics, N_INPUT))
     statuses = interrupt({'bag_recorder': recorder, 'quadrotor_sim': sim})
     assert statuses == {'bag_recorder': 0, 'quadrotor_sim': 0}, logs(recorder) + logs(sim)
@@ -197,14 +205,15 @@ def test_replayed_bag_gives_the_offline_result(ros, tmp_path: Path) -> None:
         wait_for_lines(proc, 'ready:')
     wait_for_lines(recorder, *[f'recording {t} (' for t in outputs])
     assert spin_until(
-        ros.executor, lambda: all(ros.node.count_subscribers(t) >= 1 for t in outputs), 10.0
+        ros.executor, lambda: all(ros.node.count_subscribers(t) >= 1 for t in outputs), TIMEOUT
     )
     player = ros.start('bag_player', {
         'bag': str(bag), 'rate': RATE, 'topics': ['/odom', '/reference'],
-        'wait_for_subscribers': len(ALGORITHMS), 'wait_timeout': 30.0, 'qos_depth': DEPTH,
+        'wait_for_subscribers': len(ALGORITHMS), 'wait_timeout': TIMEOUT, 'qos_depth': DEPTH,
+        'ack_timeout': TIMEOUT,
     })  # fmt: skip
-    wait_for_lines(player, 'done: ', timeout=DURATION / RATE + 60.0)
-    assert player.wait(30.0) == 0, logs(player)
+    wait_for_lines(player, 'done: ', timeout=DURATION / RATE + 2 * TIMEOUT)
+    assert player.wait(TIMEOUT) == 0, logs(player)
     played = logs(player)
     assert f'done: {2 * N_INPUT} messages' in played  # every odom and reference of the bag
     assert 'not acknowledged' not in played and 'playing without' not in played, played

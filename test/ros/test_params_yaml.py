@@ -22,7 +22,14 @@ import pytest
 import yaml
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import REPO, NodeProcess, private_domain, reserve_domain_id, spin_until
+from ros_helpers import (
+    REPO,
+    NodeProcess,
+    private_domain,
+    reserve_domain_id,
+    spin_until,
+    start_node,
+)
 
 pytestmark = pytest.mark.ros
 
@@ -30,7 +37,7 @@ CONFIG = REPO / 'config'
 
 
 def logs(proc: NodeProcess) -> str:
-    return proc.stdout_path.read_text() + proc.stderr_path.read_text()
+    return proc.output()
 
 
 @pytest.fixture
@@ -46,10 +53,10 @@ class Client:
     def __init__(self, ros, node_name: str) -> None:
         self.ros = ros
         self.client = AsyncParameterClient(ros.node, node_name)
-        assert self.client.wait_for_services(timeout_sec=20.0), f'{node_name} has no services'
+        assert self.client.wait_for_services(timeout_sec=60.0), f'{node_name} has no services'
 
     def _result(self, future):
-        assert spin_until(self.ros.executor, future.done, timeout=10.0)
+        assert spin_until(self.ros.executor, future.done, timeout=60.0)
         return future.result()
 
     def get(self, names: list[str]) -> dict:
@@ -94,9 +101,9 @@ def yaml_values(path: Path, node_name: str) -> dict:
 def test_shipped_config_starts_the_node(ros, tmp_path, executable, config, ready) -> None:
     path = CONFIG / config
     values = yaml_values(path, executable)
-    proc = NodeProcess(executable, {}, ros.domain, tmp_path, ['--params-file', str(path)])
+    proc = start_node(executable, {}, ros.domain, tmp_path, ['--params-file', str(path)])
     try:
-        assert proc.wait_for_output(ready, 30.0), logs(proc)
+        assert proc.wait_for(ready, 120.0), logs(proc)
         got = Client(ros, executable).get(sorted(values))
         status = proc.stop(signal.SIGINT)
     finally:
@@ -139,12 +146,12 @@ BAD_FILES = [
 def test_bad_yaml_stops_the_node_with_a_reason(tmp_path, executable, values, reason) -> None:
     path = tmp_path / 'params.yaml'
     path.write_text(yaml.safe_dump({executable: {'ros__parameters': values}}))
-    proc = NodeProcess(executable, {}, reserve_domain_id(), tmp_path, ['--params-file', str(path)])
+    proc = start_node(executable, {}, reserve_domain_id(), tmp_path, ['--params-file', str(path)])
     try:
-        status = proc.wait(30.0)
+        status = proc.wait(120.0)
     finally:
         proc.stop(signal.SIGKILL)
-    err = proc.stderr_path.read_text()
+    err = proc.errors()
     assert status == 1, logs(proc)
     assert re.search(reason, err), err
     assert 'Traceback' not in logs(proc) and 'ready:' not in logs(proc)
@@ -154,9 +161,9 @@ def test_bad_yaml_stops_the_node_with_a_reason(tmp_path, executable, values, rea
 
 
 def test_running_node_refuses_bad_values(ros, tmp_path) -> None:
-    proc = NodeProcess('cloe_inference', {'algorithm': 'cloe_sm'}, ros.domain, tmp_path)
+    proc = start_node('cloe_inference', {'algorithm': 'cloe_sm'}, ros.domain, tmp_path)
     try:
-        assert proc.wait_for_output('ready:', 30.0), logs(proc)
+        assert proc.wait_for('ready:', 120.0), logs(proc)
         client = Client(ros, 'cloe_inference')
         result = client.set('rate', 5000.0)
         assert not result.successful and 'rate' in result.reason and 'range' in result.reason
@@ -178,7 +185,7 @@ def test_running_node_refuses_bad_values(ros, tmp_path) -> None:
         # a value the node can use is applied (it restarts its estimators at the new rate)
         result = client.set('rate', 50.0)
         assert result.successful, result.reason
-        assert proc.wait_for_output('restarted the estimators: cloe_sm at 50 Hz', 10.0)
+        assert proc.wait_for('restarted the estimators: cloe_sm at 50 Hz', 60.0)
         assert client.get(['rate']) == {'rate': 50.0}
         status = proc.stop(signal.SIGINT)
     finally:

@@ -9,6 +9,7 @@ Counting starts once the recorder's subscriptions match our publishers (they onl
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import re
@@ -33,7 +34,7 @@ from rclpy.duration import Duration
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
+from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until, start_node
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosDurability, QosReliability
 from rosgraph_msgs.msg import Clock
@@ -47,7 +48,8 @@ pytestmark = pytest.mark.ros
 
 RATE = 100.0  # Hz
 STEP_NS = 10_000_000  # stamp step of one odometry message
-MAX_SIGKILL_LOSS = 110  # messages at 100 Hz: 1 s of data plus a small margin
+#: Generous waits (s) for what takes a fraction of that on an idle machine.
+TIMEOUT = 60.0
 
 
 @pytest.fixture
@@ -98,10 +100,13 @@ def pose_seq(msg) -> int:
 
 
 class Diagnostics:
-    """The recorder's latest /diagnostics status, as a dict of its key/values."""
+    """The recorder's latest /diagnostics status, as a dict of its key/values (``history``: every
+    one heard, in order, and ``stamps``: their header stamps, ns of the recorder's clock)."""
 
     def __init__(self, node) -> None:
         self.values: dict[str, str] = {}
+        self.history: list[dict[str, str]] = []
+        self.stamps: list[int] = []
         self.names: set[str] = set()
         self.sub = node.create_subscription(
             DiagnosticArray,
@@ -112,11 +117,13 @@ class Diagnostics:
         )
 
     def _on(self, raw: bytes) -> None:
-        _, statuses = decode_diagnostics(raw)
+        stamp, statuses = decode_diagnostics(raw)
         for s in statuses:
             if s.name.startswith('bag_recorder: '):
                 self.names.add(s.name)
                 self.values = dict(s.values)
+                self.history.append(self.values)
+                self.stamps.append(stamp)
 
     def count(self, key: str) -> int:
         return int(self.values.get(key, '-1'))
@@ -124,19 +131,19 @@ class Diagnostics:
 
 def logs(rec: NodeProcess) -> str:
     """Everything the process wrote (also after stop(), which closes its files)."""
-    return rec.stdout_path.read_text() + rec.stderr_path.read_text()
+    return rec.output()
 
 
 def start_recorder(ros, tmp_path: Path, **params) -> NodeProcess:
     params.setdefault('output', str(tmp_path / 'bag'))
-    rec = NodeProcess('bag_recorder', params, ros.domain, tmp_path)
-    if not rec.wait_for_output('recording to', timeout=20):
+    rec = start_node('bag_recorder', params, ros.domain, tmp_path)
+    if not rec.wait_for('recording to', timeout=TIMEOUT):
         rec.stop(signal.SIGKILL)
         pytest.fail(f'recorder did not start:\n{logs(rec)}')
     return rec
 
 
-def wait_matched(ros, *publishers, timeout: float = 20.0) -> None:
+def wait_matched(ros, *publishers, timeout: float = TIMEOUT) -> None:
     ok = spin_until(
         ros.executor, lambda: all(p.get_subscription_count() >= 1 for p in publishers), timeout
     )
@@ -232,13 +239,18 @@ def test_signal_gives_a_complete_bag(ros, tmp_path: Path, sig: int) -> None:
         t0_ns = time.time_ns()
         n = 200
         publish(odom_pub, ref_pub, n)
-        assert odom_pub.wait_for_all_acked(Duration(seconds=5))
-        assert ref_pub.wait_for_all_acked(Duration(seconds=5))
-        # the recorder says it has them all (diagnostics come every second)
+        assert odom_pub.wait_for_all_acked(Duration(seconds=TIMEOUT))
+        assert ref_pub.wait_for_all_acked(Duration(seconds=TIMEOUT))
+        # the recorder says it has them all (diagnostics come every second), in 2 chunks at
+        # least (2 s of publishing, a flush every 0.5 s)
         assert spin_until(
             ros.executor,
-            lambda: diag.count('/odom received') == n and diag.count('/reference received') == 20,
-            timeout=5,
+            lambda: (
+                diag.count('/odom received') == n
+                and diag.count('/reference received') == 20
+                and diag.count('chunks') >= 2
+            ),
+            timeout=TIMEOUT,
         ), diag.values
         t1_ns = time.time_ns()
         status = rec.stop(sig)
@@ -258,27 +270,42 @@ def test_signal_gives_a_complete_bag(ros, tmp_path: Path, sig: int) -> None:
 
 
 def test_sigkill_loses_at_most_a_flush_period(ros, tmp_path: Path) -> None:
+    """SIGKILL while publishing: the bag on disk holds a gap-free prefix with every message the
+    recorder had received before its last flush. Which flush that is comes from its reports: a
+    report counting R received messages followed by one counting more chunks means a flush
+    after the first report wrote those R (what a loaded machine changes is only how many
+    messages were still on their way or pending when the kill came: printed, not asserted)."""
     odom_pub = ros.node.create_publisher(Odometry, '/odom', qos(depth=1000))
     ref_pub = ros.node.create_publisher(PoseStamped, '/reference', qos(depth=1000))
+    diag = Diagnostics(ros.node)
     bag = tmp_path / 'bag'
     rec = start_recorder(ros, tmp_path)
+    n = 560  # 5.6 s at 100 Hz at least; the kill comes while publishing
+
+    def flushed() -> int:
+        """Odometry messages the recorder's reports show flushed to the file: R of the last
+        report followed by a report with more chunks (0 if none)."""
+        h = [(int(v.get('/odom received', 0)), int(v.get('chunks', 0))) for v in diag.history]
+        return max((r for (r, c), (_, c2) in itertools.pairwise(h) if c2 > c), default=0)
+
     try:
         wait_matched(ros, odom_pub, ref_pub)
-        n = 560  # 5.6 s at 100 Hz; the kill comes while publishing
         published = []
 
-        def kill_at_end(k: int) -> bool:
+        def kill_once_flushed(k: int) -> bool:
             published.append(k)
-            if k == n - 1:
+            ros.executor.spin_once(timeout_sec=0)  # hear the recorder's reports
+            if k >= n - 1 and flushed() >= 100:
                 os.kill(rec.proc.pid, signal.SIGKILL)
                 return True
             return False
 
-        publish(odom_pub, ref_pub, n, kill_at_end)
+        publish(odom_pub, ref_pub, 100_000, kill_once_flushed)
         assert rec.stop(signal.SIGKILL) == -signal.SIGKILL
     finally:
         rec.stop(signal.SIGKILL)
-    assert len(published) == n
+    assert len(published) >= n
+    saved = flushed()
     assert not (bag / 'metadata.yaml').exists()
 
     # mcap's stream reader, stopping at the cut (no summary, no footer)
@@ -288,8 +315,7 @@ def test_sigkill_loses_at_most_a_flush_period(ros, tmp_path: Path) -> None:
     ref = [pose_seq(decode(name, data)) for name, data in msgs['/reference']]
     assert odom == list(range(len(odom)))  # a gap-free prefix of what was published
     assert ref == list(range(len(ref)))
-    missing = n - len(odom)
-    assert 0 <= missing <= MAX_SIGKILL_LOSS
+    assert saved <= len(odom) <= len(published)  # what was flushed survived the kill
 
     # cloe bag recover: a complete bag with those messages (maybe more, from a partial chunk)
     assert cloe(['bag', 'recover', str(bag)]) == 0
@@ -298,8 +324,9 @@ def test_sigkill_loses_at_most_a_flush_period(ros, tmp_path: Path) -> None:
     recovered = [odom_seq(m) for _, _, m in got['/odom']]
     assert recovered == list(range(len(recovered))) and len(recovered) >= len(odom)
     print(
-        f'SIGKILL after {n} odometry messages: {len(odom)} read by mcap, '
-        f'{len(recovered)} recovered, {n - len(recovered)} lost'
+        f'SIGKILL after {len(published)} odometry messages ({saved} reported flushed): '
+        f'{len(odom)} read by mcap, {len(recovered)} recovered, '
+        f'{len(published) - len(recovered)} lost'
     )
     assert [pose_seq(m) for _, _, m in got['/reference']] == list(range(len(ref)))
     with AnyReader([fixed]) as reader:
@@ -323,11 +350,17 @@ def test_best_effort_and_transient_local_publishers_are_matched(ros, tmp_path: P
         wait_matched(ros, odom_pub, latched_pub)
         n = 100
         publish(odom_pub, None, n)
-        spin_until(
-            ros.executor,
-            lambda: diag.count('/odom received') == n and diag.count('/latched received') == 1,
-            timeout=5,
-        )
+        end_ns = time.time_ns()
+        # best effort: what DDS did not deliver never comes; the recorder's counts settle
+        # once it has taken what did (two reports made after the publishing the same)
+
+        def settled() -> bool:
+            after = [v for t, v in zip(diag.stamps, diag.history) if t > end_ns]
+            return len(after) >= 2 and after[-1] == after[-2]
+
+        assert spin_until(ros.executor, settled, timeout=TIMEOUT), diag.values
+        assert diag.count('/latched received') == 1
+        received = diag.count('/odom received')
         status = rec.stop(signal.SIGINT)
     finally:
         rec.stop(signal.SIGKILL)
@@ -355,8 +388,10 @@ def test_best_effort_and_transient_local_publishers_are_matched(ros, tmp_path: P
             for c, _, raw in reader.messages()
             if c.topic == '/latched'
         ]
-    # best effort may drop on a loaded machine; a reliable-only subscription would record nothing
-    assert len(odom) >= 0.95 * n and odom == sorted(set(odom)) and set(odom) <= set(range(n))
+    # best effort may drop on a loaded machine (how many: a delivery rate, not asserted); a
+    # reliable-only subscription would record nothing. Every one received is in the bag.
+    assert 0 < len(odom) == received and odom == sorted(set(odom)) and set(odom) <= set(range(n))
+    print(f'best effort: {len(odom)} of {n} recorded')
     assert len(odom) == conns['/odom'].msgcount
     assert latched_msgs == [7]
 
@@ -418,10 +453,12 @@ def test_a_full_disk_ends_with_status_1_and_what_was_written(ros, tmp_path: Path
         wait_matched(ros, odom_pub)
         publish(odom_pub, None, 1000, after_failure)  # ~750 B each: 40 kB in 0.6 s
         assert failed_at, logs(rec)
-        assert odom_pub.wait_for_all_acked(Duration(seconds=5))
+        assert odom_pub.wait_for_all_acked(Duration(seconds=TIMEOUT))
         n = failed_at[0] + 21
         assert spin_until(
-            ros.executor, lambda: diag.count('/odom received') == n and 'failure' in diag.values, 5
+            ros.executor,
+            lambda: diag.count('/odom received') == n and 'failure' in diag.values,
+            TIMEOUT,
         ), diag.values
         status = rec.stop(signal.SIGINT)
     finally:
@@ -460,11 +497,9 @@ def test_invalid_parameters_stop_the_node_with_a_reason(
     tmp_path: Path, params: dict, reason: str
 ) -> None:
     domain = reserve_domain_id()
-    rec = NodeProcess(
-        'bag_recorder', {'output': str(tmp_path / 'bag'), **params}, domain, tmp_path
-    )
+    rec = start_node('bag_recorder', {'output': str(tmp_path / 'bag'), **params}, domain, tmp_path)
     try:
-        status = rec.wait(20)
+        status = rec.wait(TIMEOUT)
     finally:
         rec.stop(signal.SIGKILL)
     out = logs(rec)
@@ -476,9 +511,9 @@ def test_invalid_parameters_stop_the_node_with_a_reason(
 def test_existing_output_stops_the_node(tmp_path: Path) -> None:
     (tmp_path / 'bag').mkdir()
     (tmp_path / 'bag' / 'keep').write_text('x')
-    rec = NodeProcess('bag_recorder', {'output': 'bag'}, reserve_domain_id(), tmp_path)
+    rec = start_node('bag_recorder', {'output': 'bag'}, reserve_domain_id(), tmp_path)
     try:
-        status = rec.wait(20)
+        status = rec.wait(TIMEOUT)
     finally:
         rec.stop(signal.SIGKILL)
     assert status == 1
@@ -517,7 +552,7 @@ def test_runtime_parameter_sets_are_validated(ros, recorder) -> None:
 
     def set_one(name, value):
         future = client.set_parameters([Parameter(name, value=value)])
-        assert spin_until(ros.executor, future.done, timeout=10)
+        assert spin_until(ros.executor, future.done, timeout=TIMEOUT)
         (result,) = future.result().results
         return result
 
@@ -579,7 +614,7 @@ def test_sim_time_skip_and_diagnostics_in_process(ros, recorder, tmp_path: Path)
             return len(dict(ros.node.get_topic_names_and_types()).get('/dual', []))
 
         # the recorder shares this node's graph: it will see both types at its first look
-        assert spin_until(ros.executor, lambda: dual_types() == 2, timeout=10)
+        assert spin_until(ros.executor, lambda: dual_types() == 2, timeout=TIMEOUT)
         _check_sim_time_and_skip(ros, recorder, tmp_path, clock_pub, odom_pub, dual_a, dual_b)
     finally:
         rclpy.try_shutdown(context=other_ctx)
@@ -596,14 +631,14 @@ def _check_sim_time_and_skip(ros, recorder, tmp_path, clock_pub, odom_pub, dual_
         clock_pub.publish(clock)
         return node.get_clock().now().nanoseconds == sim_ns
 
-    assert spin_until(ros.executor, tick, timeout=10)
-    assert spin_until(ros.executor, lambda: odom_pub.get_subscription_count() >= 1, timeout=10)
+    assert spin_until(ros.executor, tick, timeout=TIMEOUT)
+    assert spin_until(ros.executor, lambda: odom_pub.get_subscription_count() >= 1, TIMEOUT)
     for k in range(5):
         odom_pub.publish(odometry(k))
-    assert spin_until(ros.executor, lambda: node._writer.topic_counts.get('/odom') == 5, 10)
+    assert spin_until(ros.executor, lambda: node._writer.topic_counts.get('/odom') == 5, TIMEOUT)
     # the sim clock stands still; flushing (steady clock) goes on: the messages reach the file
     flushes = node._writer.chunk_count
-    assert spin_until(ros.executor, lambda: node._writer.chunk_count > flushes, timeout=5)
+    assert spin_until(ros.executor, lambda: node._writer.chunk_count > flushes, timeout=TIMEOUT)
     on_disk, _ = stream_read(tmp_path / 'bag' / 'bag.mcap')
     assert [odom_seq(decode(name, data)) for name, data in on_disk['/odom']] == list(range(5))
     assert '/dual' in node._skipped and 'several types' in node._skipped['/dual']
@@ -621,9 +656,9 @@ def _check_sim_time_and_skip(ros, recorder, tmp_path, clock_pub, odom_pub, dual_
 def test_offered_qos_of_every_publisher_is_stored(ros, recorder, tmp_path: Path) -> None:
     reliable_pub = ros.node.create_publisher(Odometry, '/q', qos(reliable=True, depth=10))
     node = recorder(topics=['/q'])
-    assert spin_until(ros.executor, lambda: reliable_pub.get_subscription_count() >= 1, 10)
+    assert spin_until(ros.executor, lambda: reliable_pub.get_subscription_count() >= 1, TIMEOUT)
     best_effort_pub = ros.node.create_publisher(Odometry, '/q', qos(reliable=False, depth=10))
-    assert spin_until(ros.executor, lambda: best_effort_pub.get_subscription_count() >= 1, 10)
+    assert spin_until(ros.executor, lambda: best_effort_pub.get_subscription_count() >= 1, TIMEOUT)
     assert not node._stats['/q'].reliable  # resubscribed to match both
     node.close()
     with AnyReader([tmp_path / 'bag']) as reader:

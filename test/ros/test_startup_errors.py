@@ -37,7 +37,7 @@ def run_node(tmp_path, name: str, *args: str) -> tuple[int, str]:
         cwd=tmp_path,
         capture_output=True,
         text=True,
-        timeout=60,
+        timeout=300,
     )
     return proc.returncode, proc.stdout + proc.stderr
 

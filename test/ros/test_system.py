@@ -54,7 +54,7 @@ from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from nav_msgs.msg import Odometry
-from ros_helpers import NodeProcess, private_domain, spin_until
+from ros_helpers import NodeProcess, private_domain, spin_until, start_node
 
 from cloe_ros.core.model import PARAMETER_NAMES
 from cloe_ros.io.dataset import load_flight
@@ -84,6 +84,12 @@ SIM = {
     # Vicon-like noise (cloe_ros.core.simulator.TYPICAL_NOISE): odom is not the truth
     'noise_position': 0.002, 'noise_velocity': 0.01, 'noise_angle': 0.002, 'noise_rate': 0.01,
 }  # fmt: skip
+#: Every inference node's settings besides its own. ``reference_timeout`` 60 s: the engine waits
+#: for the reference of each step, as it always does when odometry and reference come together;
+#: with the default 0.25 s, a node short of CPU that takes a burst of odometry before the
+#: references sent with it steps on the held reference, and its estimates then depend on the
+#: scheduler (the rule is tested in test/core/test_engine.py).
+INFERENCE = {'qos_depth': DEPTH, 'reference_timeout': 60.0}
 ODOMETRY, POSE = 'nav_msgs/msg/Odometry', 'geometry_msgs/msg/PoseStamped'
 ARRAY, PATH = 'std_msgs/msg/Float64MultiArray', 'nav_msgs/msg/Path'
 DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
@@ -93,6 +99,9 @@ DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
 MAX_POSITION_ERROR = {'cloe_sm': 0.025, 'cloe_iv': 0.04}
 RMS_POSITION_ERROR = {'cloe_sm': 0.02, 'cloe_iv': 0.01}
 SKIP_S = 0.5
+#: Generous waits (s): a node's start-up or the recorder's last reports take a fraction of that
+#: on an idle machine, and several times more on a loaded one.
+TIMEOUT = 120.0
 #: cloe_iv after the take-off (t >= 3 s): rms position error below that of the odometry it filters.
 STEADY_S = 3.0
 
@@ -130,8 +139,7 @@ def system(tmp_path: Path):
     with private_domain('system_test') as ros:
 
         def start(name: str, params: dict, node_name: str | None = None) -> NodeProcess:
-            extra = ['-r', f'__node:={node_name}'] if node_name else None
-            proc = NodeProcess(name, params, ros.domain, tmp_path / 'logs', extra_args=extra)
+            proc = start_node(name, params, ros.domain, tmp_path / 'logs', node_name=node_name)
             procs.append(proc)
             return proc
 
@@ -150,12 +158,12 @@ def system(tmp_path: Path):
 
 def logs(proc: NodeProcess) -> str:
     """Everything the process wrote (also after stop(), which closes its files)."""
-    return proc.stdout_path.read_text() + proc.stderr_path.read_text()
+    return proc.output()
 
 
-def wait_for_lines(proc: NodeProcess, *lines: str, timeout: float = 30.0) -> None:
+def wait_for_lines(proc: NodeProcess, *lines: str, timeout: float = TIMEOUT) -> None:
     for line in lines:
-        if not proc.wait_for_output(line, timeout):
+        if not proc.wait_for(line, timeout):
             pytest.fail(f'{proc.name} did not log {line!r}:\n{logs(proc)}')
 
 
@@ -174,7 +182,7 @@ def fly(system, subscribers: int, sim_params: dict, inference: dict[str, dict],
         'output': str(system.bag), 'topics': topics, 'qos_depth': DEPTH, **(recorder_params or {})
     })  # fmt: skip
     procs = {
-        name: system.start('cloe_inference', {'qos_depth': DEPTH, **params}, node_name=name)
+        name: system.start('cloe_inference', {**INFERENCE, **params}, node_name=name)
         for name, params in inference.items()
     }
     for proc in procs.values():
@@ -185,7 +193,7 @@ def fly(system, subscribers: int, sim_params: dict, inference: dict[str, dict],
         'quadrotor_sim', {**SIM, **sim_params, 'wait_for_subscribers': subscribers + 1}
     )
     gate(system.node, recorder, sim, topics)
-    wait_for_lines(sim, 'done: ', timeout=DURATION / RTF + 60.0)
+    wait_for_lines(sim, 'done: ', timeout=DURATION / RTF + TIMEOUT)
     counts = system.counts
     sim_topics = [t for t in topics if t.rsplit('/', 1)[-1] in ('odom', 'reference',
                                                                  'ground_truth')]  # fmt: skip
@@ -200,7 +208,7 @@ def fly(system, subscribers: int, sim_params: dict, inference: dict[str, dict],
         complete = all(last.get(t, 0) == N_ODOM for t in sim_topics + state_topics)
         return complete and all(last.get(t, 0) == before.get(t, 0) for t in watched)
 
-    assert spin_until(system.executor, settled, timeout=60.0), counts.reports[-2:]
+    assert spin_until(system.executor, settled, timeout=TIMEOUT), counts.reports[-2:]
     procs['bag_recorder'], procs['quadrotor_sim'] = recorder, sim
     statuses = interrupt(procs)
     out = {name: logs(proc) for name, proc in procs.items()}
@@ -227,7 +235,7 @@ def gate(node, recorder: NodeProcess, sim: NodeProcess, topics: list[str]) -> li
     return subs
 
 
-def interrupt(procs: dict[str, NodeProcess], timeout: float = 20.0) -> dict[str, int]:
+def interrupt(procs: dict[str, NodeProcess], timeout: float = 60.0) -> dict[str, int]:
     """SIGINT to every process at once (one signal each), then their exit statuses; a process
     still running after ``timeout`` is killed (status -9)."""
     for proc in procs.values():

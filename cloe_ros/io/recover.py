@@ -1083,8 +1083,8 @@ def recover_bag(
                     scan.data_crc_mismatch,
                 )
             )
-        if not counts:
-            raise RecoverError(_nothing_to_recover(bag, results, skipped))
+        if not sum(counts.values()):  # (no topic, or topics without one intact message)
+            raise RecoverError(_nothing_to_recover(bag, results, skipped, list(counts)))
         writer.close()
     except BaseException as err:
         writer.abort()
@@ -1098,14 +1098,15 @@ def recover_bag(
     return RecoveryReport(output, tuple(results), counts, msgtypes, skipped, orphans)
 
 
-def _nothing_to_recover(bag: Path, results: list[FileRecovery], skipped: dict[str, str]) -> str:
-    """Why a bag without one usable topic gives no output."""
+def _nothing_to_recover(bag: Path, results: list[FileRecovery], skipped: dict[str, str],
+                        declared: list[str] | None = None) -> str:  # fmt: skip
+    """Why a bag without one usable message gives no output."""
     why = '; '.join(f'{f.path} ({f.size} bytes): {_without_offset(f.reason)}' for f in results)
     topics = ''.join(f'; topic {t} unusable: {w}' for t, w in sorted(skipped.items()))
-    return (
-        f'nothing to recover from {bag}: no topic and no message is complete on disk ({why}'
-        f'{topics}); no output written'
-    )
+    what = (f'no message of its {len(declared)} topic(s) is intact on disk' if declared
+            else 'no topic and no message is complete on disk')  # fmt: skip
+    return f'nothing to recover from {bag}: {what} ({why}{topics}); no output written'
+
 
 
 def _route(

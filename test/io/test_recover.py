@@ -395,6 +395,27 @@ def test_nothing_to_recover_is_an_error_without_output(tmp_path: Path, capsys) -
     assert not default_output(tmp_path / 'cut100').exists()
 
 
+def test_a_bag_whose_only_chunk_is_damaged_recovers_nothing_and_says_so(tmp_path: Path) -> None:
+    """One zstd chunk, a bit flipped inside its compressed data (its CRC no longer matches): the
+    chunk is left out, which leaves the topics without a message. That used to write an empty bag
+    with status 0; it is an error naming the bag, and no output."""
+    bag = tmp_path / 'one_chunk'
+    with BagWriter(bag, 'zstd') as w:
+        w.add_topic('/reference', POSE_STAMPED)
+        w.add_topic('/odom', ODOMETRY)
+        for k in range(40):
+            w.write('/reference', 1_000 + k, pose(k))
+            w.write('/odom', 1_000 + k, odometry(k))
+    file = bag / 'one_chunk.mcap'
+    content = bytearray(file.read_bytes())
+    (start,) = chunk_starts(file)
+    content[start + 9 + 100] ^= 0x10  # inside the compressed records
+    file.write_bytes(bytes(content))
+    with pytest.raises(RecoverError, match=r'nothing to recover .*no message of its 2 topic'):
+        recover_bag(bag)
+    assert not default_output(bag).exists()
+
+
 def test_opcode_0x10_is_not_a_record(tmp_path: Path) -> None:
     """The MCAP specification defines opcodes 0x01-0x0F; 0x10 is no record."""
     _, unfinished, written = write_flushed_bag(tmp_path / 'bag', 'none')

@@ -18,7 +18,8 @@ DEMO_ARGS ?=
 TEST_ARGS ?=
 # parallel test processes (pytest-xdist); each reserves a DDS domain of its own (test/conftest.py)
 TEST_WORKERS ?= auto
-PYTEST := $(BIN)/python -m pytest test -n $(TEST_WORKERS) --dist worksteal
+# (no path given: pytest.ini's testpaths, test/; TEST_ARGS=test/ros runs that folder alone)
+PYTEST := $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist worksteal
 
 # DDS stays on this machine; rcl logs go to the work tree, not ~/.ros.
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST

@@ -4,8 +4,9 @@ Every test process holds DDS domains no other process on the machine holds
 (:func:`~cloe_ros.cli.processes.reserve_domain_id`, a lock file per id): with ``pytest -n N``
 (pytest-xdist, as ``make test`` runs it) each worker process imports this file and so reserves its
 own ``ROS_DOMAIN_ID`` for the contexts its in-process tests create, and process-level tests
-reserve one more each (``private_domain``). Two workers, or two suites run side by side from
-different work trees, never see each other's nodes.
+reserve one more each (``private_domain``, ``reserve_domain_id``), given back when the test ends.
+Two workers, or two suites run side by side from different work trees, never see each other's
+nodes.
 """
 
 from __future__ import annotations
@@ -17,7 +18,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from ros_helpers import reserve_domain_id
+import pytest
+from ros_helpers import release_test_domains
+
+from cloe_ros.cli.processes import reserve_domain_id
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 #: This process's domain: the xdist controller's, or one worker's (``PYTEST_XDIST_WORKER``).
@@ -39,3 +43,10 @@ def pytest_collection_modifyitems(config, items) -> None:
     ending the run alone."""
     slow_modules = {item.module for item in items if item.get_closest_marker('slow')}
     items.sort(key=lambda item: item.module not in slow_modules)
+
+
+@pytest.fixture(autouse=True)
+def _release_domains():
+    """The domains a test reserved are given back when it ends (its nodes are stopped by then)."""
+    yield
+    release_test_domains()

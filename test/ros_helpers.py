@@ -1,7 +1,8 @@
 """Helpers for tests that use rclpy or start node processes.
 
-* :func:`reserve_domain_id` (the package's own) hands out a ``ROS_DOMAIN_ID`` no other process on
-  this machine holds (a lock file per id), so process-level tests never see each other's nodes.
+* :func:`reserve_domain_id` (the package's, given back when the test ends) hands out a
+  ``ROS_DOMAIN_ID`` no other process on this machine holds (a lock file per id), so
+  process-level tests never see each other's nodes.
 * :func:`start_node` starts a node's installed console script on a given domain as the package's
   own :class:`~cloe_ros.cli.processes.NodeProcess` (what ``cloe demo`` uses), standard output and
   standard error each in a file of its own; ``stop()`` ends it with a chosen signal.
@@ -22,13 +23,15 @@ from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
 
-from cloe_ros.cli.processes import NodeProcess, reserve_domain_id
+from cloe_ros.cli.processes import NodeProcess, release_domain_id
+from cloe_ros.cli.processes import reserve_domain_id as _reserve
 from cloe_ros.cli.processes import ros_env as node_env
 
 __all__ = [
     'NodeProcess',
     'executable',
     'private_domain',
+    'release_test_domains',
     'reserve_domain_id',
     'ros_env',
     'spin_until',
@@ -36,6 +39,24 @@ __all__ = [
 ]
 
 REPO = Path(__file__).resolve().parent.parent
+#: Domains reserved by the running test (released after it: release_test_domains).
+_TEST_DOMAINS: list[int] = []
+
+
+def reserve_domain_id() -> int:
+    """A domain of its own for a test (:func:`cloe_ros.cli.processes.reserve_domain_id`), given
+    back when the test ends (``test/conftest.py`` calls :func:`release_test_domains`): a suite
+    reserves hundreds over its run, and the machine has 130, shared with the suites of other
+    work trees running beside it."""
+    domain = _reserve()
+    _TEST_DOMAINS.append(domain)
+    return domain
+
+
+def release_test_domains() -> None:
+    """Give back every domain the test that just ended reserved (its nodes are stopped)."""
+    while _TEST_DOMAINS:
+        release_domain_id(_TEST_DOMAINS.pop())
 
 
 def ros_env(domain_id: int, log_dir: Path | None = None) -> dict[str, str]:

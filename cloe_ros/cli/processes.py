@@ -21,26 +21,38 @@ NODE_MODULES = {
     'bag_recorder': 'cloe_ros.ros.recorder_node',
     'bag_player': 'cloe_ros.ros.player_node',
 }
-_LOCKS: list = []
+#: The lock file held for each domain this process reserved.
+_LOCKS: dict[int, object] = {}
 
 
 def reserve_domain_id(low: int = 100, high: int = 230) -> int:
     """A ``ROS_DOMAIN_ID`` in [low, high) that no other process of this package on the machine
-    holds (a lock file per id, released when this process exits)."""
+    holds (a lock file per id, held until :func:`release_domain_id` or until this process
+    exits)."""
     lock_dir = Path(tempfile.gettempdir()) / 'cloe_ros_domains'
     lock_dir.mkdir(parents=True, exist_ok=True)
     start = low + (os.getpid() * 7) % (high - low)
     for k in range(high - low):
         domain = low + (start - low + k) % (high - low)
+        if domain in _LOCKS:
+            continue
         fh = open(lock_dir / f'{domain}.lock', 'w')
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             fh.close()
             continue
-        _LOCKS.append(fh)
+        _LOCKS[domain] = fh
         return domain
     raise RuntimeError(f'no free ROS domain id in [{low}, {high})')
+
+
+def release_domain_id(domain: int) -> None:
+    """Give back a domain :func:`reserve_domain_id` reserved (nothing if it holds none): once
+    every node on it has ended, another process may use it."""
+    fh = _LOCKS.pop(domain, None)
+    if fh is not None:
+        fh.close()  # (closing the file releases its lock)
 
 
 def ros_env(domain_id: int, log_dir: Path) -> dict[str, str]:

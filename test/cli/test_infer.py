@@ -631,11 +631,13 @@ def test_config_option(sim_bag, tmp_path, capsys):
     status, _, err = run_infer(capsys, sim_bag, '-o', out, '-q', '--config', config)
     assert status == 0, err
     counts = topic_counts(out)
-    assert set(counts) == {'/inferred/state', '/inferred/parameters', '/odom', '/reference',
-                           '/ground_truth', '/true_parameters'}  # fmt: skip
+    assert set(counts) == {'/inferred/state', '/inferred/parameters', '/inferred/parameter_labels',
+                           '/inferred/parameters_named', '/odom', '/reference', '/ground_truth',
+                           '/true_parameters'}  # fmt: skip
     t, _, _ = odometry_arrays(decoded(out, '/inferred/state'))
     assert len(t) == 301 and np.all(np.diff(t) == 5 * STEP_NS)
     assert counts['/inferred/parameters'] == 31  # every 0.5 s of the 15 s, both ends
+    assert counts['/inferred/parameters_named'] == 31 and counts['/inferred/parameter_labels'] == 1
     assert (labelled(last_parameters(out, '/inferred/parameters'), 'status.') == -1).all()
 
     overridden = tmp_path / 'overridden'

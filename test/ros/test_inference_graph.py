@@ -17,7 +17,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from ros_helpers import NodeProcess, private_domain, reserve_domain_id, spin_until
+from ros_helpers import private_domain, reserve_domain_id, spin_until, start_node
 
 from cloe_ros.io.messages import decode_diagnostics
 from cloe_ros.ros.fleet import check_shard, shard_of
@@ -66,7 +66,7 @@ def test_messages_lost_in_dds_are_counted_per_topic(ros, tmp_path: Path) -> None
         Odometry, '/odom', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     )
     diagnostics = Diagnostics(ros)
-    node = NodeProcess('cloe_inference', {'diagnostics_period': 0.2}, ros.domain, tmp_path)
+    node = start_node('cloe_inference', {'diagnostics_period': 0.2}, ros.domain, tmp_path)
     name = 'cloe_inference: /'
     try:
         assert spin_until(ros.executor, lambda: pub.get_subscription_count() >= 1, 60), (
@@ -268,14 +268,14 @@ def test_three_shards_split_twelve_simulated_vehicles(ros, tmp_path: Path) -> No
     diagnostics = Diagnostics(ros)
     # light on CPU: 20 Hz odometry and inference, no predictions, half real time
     shards = [
-        NodeProcess('cloe_inference', {
+        start_node('cloe_inference', {
             'discover': True, 'shard_index': i, 'shard_count': 3, 'discovery_period': 0.2,
             'rate': 20.0, 'algorithm': 'cloe_sm', 'prediction_horizon': 0.0,
             'diagnostics_period': 0.5,
         }, ros.domain, tmp_path, ['-r', f'__node:=shard{i}'])
         for i in range(3)
     ]  # fmt: skip
-    sim = NodeProcess('quadrotor_sim', {
+    sim = start_node('quadrotor_sim', {
         'vehicles': vehicles, 'scenario': 'hover', 'sim_rate': 200.0, 'odom_rate': 20.0,
         'reference_rate': 20.0, 'real_time_factor': 0.5, 'publish_truth': False,
     }, ros.domain, tmp_path)  # fmt: skip

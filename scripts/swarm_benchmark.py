@@ -11,6 +11,11 @@ Printed per run: messages received of those sent, CPU time of the receiving proc
 and the latency of the states of the first vehicle (wall clock at reception minus stamp, p50 and
 p99). Speeds depend on the machine and its load: compare the node's column with the floor's in
 the same run (EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set.
+
+    .venv/bin/python scripts/swarm_benchmark.py --offline bags/position [--repeat 3]
+
+``cloe infer`` on a bag beside the I/O floor: reading, decoding and rewriting the same bag with
+rosbags (AnyReader, deserialize, serialize, Writer), CPU seconds of each, median of the repeats.
 """
 
 from __future__ import annotations
@@ -191,16 +196,63 @@ def run(n: int, duration: float, receiver: str, tmp: Path) -> dict[str, float]:
     return result
 
 
+def io_floor(bag: Path, out: Path) -> None:
+    """Read, decode, re-encode and write every message of ``bag`` with rosbags."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with AnyReader([bag], default_typestore=store) as reader:
+        with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
+                     for c in reader.connections}  # fmt: skip
+            for conn, stamp, raw in reader.messages():
+                msg = reader.deserialize(raw, conn.msgtype)
+                writer.write(conns[conn.id], stamp, store.serialize_cdr(msg, conn.msgtype))
+
+
+def offline(bag: Path, repeat: int) -> None:
+    import statistics
+    import tempfile
+
+    env = {**os.environ, 'PYTHONPATH': str(REPO)}
+    floor_s, infer_s = [], []
+    for k in range(repeat):
+        with tempfile.TemporaryDirectory() as tmp:
+            for what, times in (('_io_floor', floor_s), ('infer', infer_s)):
+                out = Path(tmp) / f'{what}{k}'
+                cmd = ([sys.executable, __file__, '_io_floor', str(bag), str(out)]
+                       if what == '_io_floor'
+                       else [sys.executable, '-m', 'cloe_ros.cli.main', 'infer', '-q', str(bag),
+                             '-o', str(out)])  # fmt: skip
+                before = os.times()
+                subprocess.run(cmd, env=env, check=True, capture_output=True)
+                after = os.times()
+                times.append(after.children_user + after.children_system
+                             - before.children_user - before.children_system)  # fmt: skip
+    f, i = statistics.median(floor_s), statistics.median(infer_s)
+    print(f'| `cloe infer` {bag.name} | I/O floor (rosbags read, decode, encode, write) '
+          f'{f:.2f} s CPU | cloe infer {i:.2f} s CPU | {i / f:.1f}x |')
+
+
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1].startswith('_'):
         {'_publish': lambda: publish(int(sys.argv[2]), float(sys.argv[3])),
          '_floor': lambda: floor(int(sys.argv[2]), float(sys.argv[3])),
-         '_listen': lambda: listen(int(sys.argv[2]), sys.argv[3])}[sys.argv[1]]()
+         '_listen': lambda: listen(int(sys.argv[2]), sys.argv[3]),
+         '_io_floor': lambda: io_floor(Path(sys.argv[2]), Path(sys.argv[3]))}[sys.argv[1]]()
         return 0
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--vehicles', type=int, nargs='+', default=[10, 100])
     parser.add_argument('--duration', type=float, default=20.0)
+    parser.add_argument('--offline', type=Path, metavar='BAG',
+                        help='instead: cloe infer on BAG beside the I/O floor')
+    parser.add_argument('--repeat', type=int, default=3)
     args = parser.parse_args()
+    if args.offline:
+        offline(args.offline, args.repeat)
+        return 0
     import tempfile
 
     print('| vehicles | do-nothing subscriber: received, CPU per message | cloe_inference: '

@@ -80,6 +80,9 @@ POSITION_JUMP = 1.0  # m
 #: An odometry gap longer than this many typical intervals (and ``MIN_HELD_GAP``), but shorter
 #: than ``max_gap``, is held aside too, so a single glitched stamp ahead costs one sample.
 HELD_INTERVALS = 10
+#: A gap of more than this many typical odometry intervals (below ``max_gap``) counts the samples
+#: that should have come in it as missing (``VehicleStats.odom_missing``).
+MISSING_INTERVALS = 1.5
 MIN_HELD_GAP = 50_000_000  # ns
 #: Longest accepted plan, poses (a minute at 100 Hz, and more).
 MAX_PLAN_POSES = 10_000
@@ -203,6 +206,7 @@ class VehicleStats:
     rejected: Counter = field(default_factory=Counter)
     steps: int = 0
     time_jumps: int = 0
+    odom_missing: int = 0
     position_jumps: int = 0
     frames_relearnt: int = 0
     resets: int = 0
@@ -296,6 +300,7 @@ class VehicleEngine:
         self._held_odom: OdometrySample | None = None  # a jump in time, until the next one
         self._held_kind = ''  # why it is held: 'time jump', 'gap' or 'position jump'
         self._interval_ns: float | None = None  # typical odometry interval
+        self._regular_ns: float | None = None  # the same, from the gaps that are not holes
         self._ref_interval_ns: float | None = None  # typical reference interval
         self._frame_learnt = False  # the frame was learnt from an input (not configured)
         self._other_frames: list[str] = []  # frames of the inputs refused in a row since
@@ -450,6 +455,16 @@ class VehicleEngine:
         self._accept_odometry(sample)
         return None
 
+    def _count_missing(self, dt: int) -> None:
+        """Count the samples missing between two stamps ``dt`` ns apart of a regular stream,
+        wherever they were lost (in DDS, in this node's queue when it fell behind, or never
+        sent), against the stream's interval learnt from the gaps that are not such holes."""
+        regular = self._regular_ns
+        if regular is None or dt <= MISSING_INTERVALS * regular:
+            self._regular_ns = dt if regular is None else regular + 0.05 * (dt - regular)
+        elif dt <= self.config.max_gap * NS:
+            self.stats.odom_missing += round(dt / regular) - 1
+
     def _held_gap(self, interval_ns: float | None) -> float:
         """The forward gap (ns) beyond which a sample is held aside until the next one."""
         gap = self.config.max_gap * NS
@@ -475,6 +490,8 @@ class VehicleEngine:
         self._yaw = float(zeta[8])
         if not self.child_frame:
             self.child_frame = sample.child_frame_id
+        if self._odom:
+            self._count_missing(sample.stamp_ns - self._odom[-1][0])
         self._odom.append((sample.stamp_ns, zeta))
         self.stats.odom_accepted += 1
         held = self._held_refs
@@ -552,6 +569,14 @@ class VehicleEngine:
         for stamp, _ in self._held_refs:
             self._reject_outlier(stamp, 'reference stamp outlier', why)
         self._held_refs.clear()
+
+    def refuse_long_plan(self, poses: int) -> Rejection | None:
+        """Refuse a plan of more than ``MAX_PLAN_POSES`` poses from its pose count alone, before
+        it is decoded (counted as :meth:`add_plan` counts it); None if it is not too long."""
+        if poses <= MAX_PLAN_POSES:
+            return None
+        self.stats.plans_received += 1
+        return self._reject(f'plan longer than {MAX_PLAN_POSES} poses', f'{poses} poses')
 
     def add_plan(self, sample: PathSample) -> Rejection | None:
         """Accept planned future references (poses stamped at future times); returns the reason

@@ -106,6 +106,11 @@ def decode_pose_stamped(raw: bytes | memoryview) -> PoseSample:
     return cdr.decode_pose_stamped(raw)
 
 
+def path_length(raw: bytes | memoryview) -> int:
+    """The pose count of a CDR ``nav_msgs/msg/Path``, read before any pose is decoded."""
+    return cdr.path_length(raw)
+
+
 def decode_path(raw: bytes | memoryview, max_poses: int | None = None) -> PathSample:
     """Decode a CDR ``nav_msgs/msg/Path`` (lean codec, io/cdr.py); more than ``max_poses``
     poses is a :class:`MessageError` raised before they are decoded."""

@@ -378,7 +378,12 @@ class InferenceNode(Node):
 
         def callback(raw: bytes) -> None:
             try:
-                sample = messages.decode_path(raw, MAX_PLAN_POSES)  # bounded before decoding
+                # the pose count first: a plan beyond the bound is refused undecoded
+                too_long = engine[vehicle].refuse_long_plan(messages.path_length(raw))
+                if too_long:
+                    self._warn_rejections(vehicle)
+                    return
+                sample = messages.decode_path(raw, MAX_PLAN_POSES)
             except MessageError as err:
                 self._malformed(vehicle, 'reference_plan', err)
                 return
@@ -526,6 +531,7 @@ class InferenceNode(Node):
             ('publishers_missing', ', '.join(missing)),
             *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
             ('time_jumps', str(s.time_jumps)),
+            ('odom_missing', str(s.odom_missing)),
             ('position_jumps', str(s.position_jumps)),
             ('frames_relearnt', str(s.frames_relearnt)),
             ('resets', str(s.resets)),

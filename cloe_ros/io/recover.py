@@ -1083,7 +1083,11 @@ def recover_bag(
                     scan.data_crc_mismatch,
                 )
             )
-        if not sum(counts.values()):  # (no topic, or topics without one intact message)
+        if not counts:
+            raise RecoverError(_nothing_to_recover(bag, results, skipped))
+        if not sum(counts.values()) and any(f.skipped for f in results):
+            # every message there was is damaged (a cut file with topics and no message yet
+            # gives an empty bag with its topics: all it ever held)
             raise RecoverError(_nothing_to_recover(bag, results, skipped, list(counts)))
         writer.close()
     except BaseException as err:

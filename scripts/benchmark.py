@@ -130,7 +130,7 @@ def main() -> int:
         print(f'| engine per 100 Hz odometry + reference sample, {algorithm} (decode, validate, '
               f'step, encode outputs) | {us:.0f} us |')  # fmt: skip
     for name, sec in codec().items():
-        print(f'| {name} (rosbags CDR) | {1e6 * sec:.1f} us |')
+        print(f'| {name} (lean CDR, io/cdr.py) | {1e6 * sec:.1f} us |')
     flights = Path('/work/shared/data/flights')
     bags = [REPO / 'bags' / 'position', REPO / 'bags' / 'trajectory']
     bags += sorted(flights.glob('nanobench_*')) if flights.exists() else []

@@ -9,7 +9,7 @@ import numpy as np
 from cloe_ros.core.engine import VehicleEngine
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs
-from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE, vehicle_namespaces
+from cloe_ros.io.dataset import feed, input_routes, vehicle_namespaces
 from cloe_ros.io.outputs import parameter_vector
 from cloe_ros.io.reader import BagReader
 from test.corpus import FLIGHTS
@@ -34,19 +34,11 @@ def golden_outputs(bag: Path) -> dict[str, np.ndarray]:
         topics = {name: info.msgtype for name, info in reader.topics.items()}
         (vehicle,) = vehicle_namespaces(topics)
         engine = VehicleEngine(engine_config, name=vehicle)
-        route = {f'{vehicle}/{ODOM}': ODOM, f'{vehicle}/{REFERENCE}': REFERENCE}
-        if topics.get(f'{vehicle}/{PLAN}') == messages.PATH:
-            route[f'{vehicle}/{PLAN}'] = PLAN
+        route = input_routes(topics, [vehicle])
         estimates = []
         for topic, _, raw in reader.messages(set(route)):
-            kind = route[topic]
             try:
-                if kind == ODOM:
-                    engine.add_odometry(messages.decode_odometry(raw))
-                elif kind == REFERENCE:
-                    engine.add_reference(messages.decode_pose_stamped(raw))
-                else:
-                    engine.add_plan(messages.decode_path(raw))
+                feed(engine, route[topic][1], raw)
             except messages.MessageError:
                 continue
             estimates.extend(engine.advance())

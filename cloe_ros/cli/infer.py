@@ -16,7 +16,7 @@ from cloe_ros.core.engine import NS, VehicleEngine
 from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs, load_settings
-from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE
+from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE, feed, input_routes
 from cloe_ros.io.outputs import LATCHED_QOS, OutputEncoder
 from cloe_ros.io.reader import BagError, BagReader
 from cloe_ros.io.writer import BagWriter, WriterError
@@ -118,12 +118,7 @@ def infer_bag(
             for v in found
         }
         malformed = {v: 0 for v in found}
-        route = {}
-        for v in found:
-            route[f'{v}/{ODOM}'] = (v, ODOM)
-            route[f'{v}/{REFERENCE}'] = (v, REFERENCE)
-            if topics.get(f'{v}/{PLAN}') == messages.PATH:
-                route[f'{v}/{PLAN}'] = (v, PLAN)
+        route = input_routes(topics, found)
         copies = [
             f'{v}/{name}' for v in found for name in COPIED if f'{v}/{name}' in topics
         ] if copy_inputs else []  # fmt: skip
@@ -164,12 +159,7 @@ def infer_bag(
                     received[topic] += 1
                     vehicle, kind = target
                     try:
-                        if kind == ODOM:
-                            engines[vehicle].add_odometry(messages.decode_odometry(raw))
-                        elif kind == REFERENCE:
-                            engines[vehicle].add_reference(messages.decode_pose_stamped(raw))
-                        else:
-                            engines[vehicle].add_plan(messages.decode_path(raw))
+                        feed(engines[vehicle], kind, raw)
                     except messages.MessageError:
                         malformed[vehicle] += 1
                         continue

@@ -576,6 +576,9 @@ class VehicleEngine:
         if poses <= MAX_PLAN_POSES:
             return None
         self.stats.plans_received += 1
+        return self._reject_long_plan(poses)
+
+    def _reject_long_plan(self, poses: int) -> Rejection:
         return self._reject(f'plan longer than {MAX_PLAN_POSES} poses', f'{poses} poses')
 
     def add_plan(self, sample: PathSample) -> Rejection | None:
@@ -588,7 +591,7 @@ class VehicleEngine:
         if len(stamps) == 0:
             return self._reject('empty plan')
         if len(stamps) > MAX_PLAN_POSES:
-            return self._reject(f'plan longer than {MAX_PLAN_POSES} poses', f'{len(stamps)} poses')
+            return self._reject_long_plan(len(stamps))
         largest = float(np.max(np.abs(p)))
         if largest > MAX_POSITION:
             return self._reject(f'plan position beyond {MAX_POSITION:g} m', f'{largest:.6g} m')

@@ -209,10 +209,6 @@ class _Writer:
         self.align(4)
         self.buf += struct.pack('<I', value)
 
-    def int32(self, value: int) -> None:
-        self.align(4)
-        self.buf += struct.pack('<i', value)
-
     def doubles(self, values) -> None:
         self.align(8)
         self.buf += np.ascontiguousarray(values, dtype='<f8').tobytes()
@@ -304,7 +300,6 @@ class MultiArrayLayout:
             w.uint32(size)
             w.uint32(stride)
         w.uint32(data_offset)
-        self.size = int(np.prod([d[1] for d in dims])) if dims else 0
         self._head = bytes(w.buf)
 
     def encode(self, data: np.ndarray) -> bytes:
@@ -315,12 +310,3 @@ class MultiArrayLayout:
         if len(data):  # (no padding before an empty sequence, as rosbags writes it)
             w.align(8)
         return bytes(w.buf) + data.tobytes()
-
-
-def encode_labelled(layout: MultiArrayLayout, n: int, data: np.ndarray) -> bytes:
-    """A Float64MultiArray of ``n`` values with the prebuilt ``layout``."""
-    data = np.asarray(data)
-    if data.size != n:
-        msg = f'{n} labels for {data.size} values'
-        raise ValueError(msg)
-    return layout.encode(data)

@@ -94,6 +94,32 @@ def vehicle_namespaces(topics: dict[str, str]) -> list[str]:
     return sorted(out)
 
 
+def input_routes(topics: dict[str, str], vehicles: list[str]) -> dict[str, tuple[str, str]]:
+    """Each input topic of ``vehicles`` in a bag of ``topics`` -> ``(vehicle, ODOM | REFERENCE |
+    PLAN)``; a plan only where the bag has one of its type."""
+    route = {}
+    for v in vehicles:
+        route[f'{v}/{ODOM}'] = (v, ODOM)
+        route[f'{v}/{REFERENCE}'] = (v, REFERENCE)
+        if topics.get(f'{v}/{PLAN}') == messages.PATH:
+            route[f'{v}/{PLAN}'] = (v, PLAN)
+    return route
+
+
+def feed(engine, kind: str, raw: bytes):
+    """Decode ``raw``, an input of ``kind`` (``ODOM``, ``REFERENCE`` or ``PLAN``), into a sample
+    and give it to ``engine`` (a :class:`~cloe_ros.core.engine.VehicleEngine`), as ``cloe infer``
+    and the node do: ``(sample, rejection or None)``; malformed bytes raise MessageError."""
+    if kind == ODOM:
+        sample = messages.decode_odometry(raw)
+        return sample, engine.add_odometry(sample)
+    if kind == REFERENCE:
+        sample = messages.decode_pose_stamped(raw)
+        return sample, engine.add_reference(sample)
+    sample = messages.decode_path(raw)
+    return sample, engine.add_plan(sample)
+
+
 def states_from_odometry(raws: list[bytes]) -> Series:
     """Model states with continuous yaw from raw Odometry messages."""
     return _states([messages.decode_odometry(r) for r in raws])

@@ -18,7 +18,7 @@ from cloe_ros.core.engine import NS, Estimate, VehicleEngine
 from cloe_ros.core.evaluation import HORIZONS, FlightRecord
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs
-from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE, vehicle_namespaces
+from cloe_ros.io.dataset import ODOM, REFERENCE, feed, input_routes, vehicle_namespaces
 from cloe_ros.io.errors import BagError
 from cloe_ros.io.reader import BagReader
 
@@ -94,28 +94,17 @@ def replay_flights(
             raise BagError(f'{path}: no vehicle with <ns>/{ODOM} and <ns>/{REFERENCE} topics')
         engines = {v: VehicleEngine(engine_config, name=v) for v in vehicles}
         collectors = {v: _Collector(engine_config.prediction.step, horizons) for v in vehicles}
-        route = {}
-        for v in vehicles:
-            route[f'{v}/{ODOM}'] = (v, ODOM)
-            route[f'{v}/{REFERENCE}'] = (v, REFERENCE)
-            if topics.get(f'{v}/{PLAN}') == messages.PATH:
-                route[f'{v}/{PLAN}'] = (v, PLAN)
+        route = input_routes(topics, vehicles)
         for topic, _, raw in reader.messages(set(route)):
             vehicle, kind = route[topic]
             engine, col = engines[vehicle], collectors[vehicle]
             try:
-                if kind == ODOM:
-                    sample = messages.decode_odometry(raw)
-                    if engine.add_odometry(sample) is None:
-                        col.odom.append((sample.stamp_ns, np.asarray(sample.position, float)))
-                elif kind == REFERENCE:
-                    sample = messages.decode_pose_stamped(raw)
-                    if engine.add_reference(sample) is None:
-                        col.refs.append((sample.stamp_ns, np.asarray(sample.position, float)))
-                else:
-                    engine.add_plan(messages.decode_path(raw))
+                sample, rejected = feed(engine, kind, raw)
             except messages.MessageError:
                 continue
+            if rejected is None and kind in (ODOM, REFERENCE):
+                received = col.odom if kind == ODOM else col.refs
+                received.append((sample.stamp_ns, np.asarray(sample.position, float)))
             col.take(engine.advance())
         for v in vehicles:
             collectors[v].take(engines[v].finish())

@@ -33,7 +33,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cloe_ros.core.anticipation import CHANNELS
-from cloe_ros.core.engine import MAX_PLAN_POSES, NS, EngineConfig, VehicleEngine
+from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.io import messages
 from cloe_ros.io.config import DEFAULTS, SettingsError, build_configs, node_values
@@ -383,7 +383,7 @@ class InferenceNode(Node):
                 if too_long:
                     self._warn_rejections(vehicle)
                     return
-                sample = messages.decode_path(raw, MAX_PLAN_POSES)
+                sample = messages.decode_path(raw)
             except MessageError as err:
                 self._malformed(vehicle, 'reference_plan', err)
                 return

@@ -284,9 +284,14 @@ class NodeRun:
         if counter:
             self.sent[counter] += 1
 
-    def feed(self, items: list[tuple[str, bytes, str | None]], block: int = 300) -> bool:
+    def feed(self, items: list[tuple[str, bytes, str | None]], block: int = 40) -> bool:
         """Publish ``(topic, cdr, diagnostics counter)`` items, waiting after each ``block``
-        until the node has counted them. False if it stopped counting (60 s)."""
+        until the node has counted them. False if it stopped counting (60 s).
+
+        A block is 0.2 s of the flight (odometry and references at 100 Hz), less than the node's
+        ``reference_timeout`` (0.25 s): the two topics are delivered on their own, and odometry
+        taken more than that ahead of the references would step on a held reference, so the
+        states would differ from the in-process run for a reason other than the attack."""
         for i, (topic, raw, counter) in enumerate(items, start=1):
             self.publish(topic, raw, counter)
             if i % block == 0 and not wait_until(self.caught_up, 60, self.client.spin):
@@ -685,7 +690,7 @@ class NodeAttacks:
                 plans += 1
             attacked.append(item)
         run = self.start()
-        fed = run.feed(attacked, block=600)
+        fed = run.feed(attacked)
         key = 'plan longer than 10000 poses'
         fed = run.settle({f'rejected: {key}': count}) and fed
         checks = self.common(run, fed, 1e-9, rejected={key: count})
@@ -734,14 +739,15 @@ class NodeAttacks:
                 'reference_received')  # fmt: skip
             if k % 100 == 0:
                 self.client.spin(0)
-        # wait until the node has counted everything, or its counts stop moving (its last 5
-        # reports, a second of message time it spent idle, say the same)
+        # wait until the node has counted everything, or its counts stop moving: its last 25
+        # reports (5 s) say the same, longer than Fast DDS's heartbeat period (3 s), after which
+        # a reliable writer resends what the subscription has not acknowledged
         reports = len(self.client.diagnostics)
 
         def settled() -> bool:
-            recent = self.client.diagnostics[reports:][-5:]
+            recent = self.client.diagnostics[reports:][-25:]
             counts = {(d.get('odom_received'), d.get('reference_received')) for d in recent}
-            return run.caught_up() or (len(recent) == 5 and len(counts) == 1)
+            return run.caught_up() or (len(recent) == 25 and len(counts) == 1)
 
         wait_until(settled, 300, self.client.spin)
         last = self.client.last()

@@ -152,8 +152,19 @@ def add_infer(sub: argparse._SubParsersAction) -> None:
             'into OUT_BAG, with copies of the inputs so the output bag is self-contained.'
         ),
     )
-    p.add_argument('bag', type=Path, help='input bag directory (rosbag2, MCAP)')
-    p.add_argument('-o', '--output', type=Path, required=True, help='output bag directory (new)')
+    p.add_argument(
+        'bag', type=Path, nargs='+',
+        help='input bag directory (rosbag2, MCAP); several: each is inferred into OUT/<its name>',
+    )  # fmt: skip
+    p.add_argument(
+        '-o', '--output', type=Path, required=True,
+        help='output bag directory (new); with several bags, a folder (new, or empty) for them',
+    )  # fmt: skip
+    p.add_argument(
+        '--jobs', '-j', type=int, default=0,
+        help='bags inferred at once, in separate processes (default 0: one per core; the '
+        'vehicles of one bag run in one process)',
+    )  # fmt: skip
     p.add_argument('--algorithm', choices=ALGORITHMS, help='estimator (default: cloe_iv)')
     p.add_argument('--rate', type=float, help='estimator rate, Hz of message time (default 100)')
     p.add_argument(

@@ -1,12 +1,18 @@
-"""``cloe infer BAG -o OUT_BAG``: the node's engine over a recorded bag, outputs into a new bag."""
+"""``cloe infer BAG -o OUT_BAG``: the node's engine over a recorded bag, outputs into a new bag.
+
+``cloe infer BAG... -o DIR --jobs N``: many bags, ``N`` at once in separate processes (one per
+core by default), each into ``DIR/<its name>``. A bag that fails is reported and the others are
+still written; the exit status is then 1."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import time
 from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -217,39 +223,103 @@ def _unusable(bag: Path, vehicle: str, engine: VehicleEngine, malformed: int, re
     )
 
 
-def run(args: argparse.Namespace) -> int:
+def _settings(args: argparse.Namespace) -> dict:
     settings = load_settings(args.config) if args.config else {}
     settings = {k: v for k, v in settings.items() if k not in ('vehicles',)}
     if args.algorithm:
         settings['algorithm'] = args.algorithm
     if args.rate is not None:
         settings['rate'] = args.rate
+    build_configs(settings)  # a bad setting is one error, before any bag is read
+    return settings
+
+
+def _summary(result: InferResult, output: Path) -> list[str]:
+    """What ``cloe infer`` prints of a run: per vehicle, then what was written."""
+    lines = []
+    for v in result.vehicles:
+        rejected = sum(result.rejected[v].values()) + result.malformed[v]
+        detail = ', '.join(f'{k}: {n}' for k, n in sorted(result.rejected[v].items()))
+        if result.malformed[v]:
+            detail = ', '.join(filter(None, [detail, f'malformed: {result.malformed[v]}']))
+        lines.append(
+            f'{v or "/"}: {result.steps[v]} steps, {rejected} input(s) rejected'
+            + (f' ({detail})' if detail else '')
+            + (f', {result.time_jumps[v]} time jump(s)' if result.time_jumps[v] else '')
+        )
+    per_second = result.wall_s / max(result.duration_s, 1e-9)
+    lines.append(
+        f'wrote {output}: {sum(result.written.values())} messages; '
+        f'{result.duration_s:.1f} s of recording (first to last message of the bag) in '
+        f'{result.wall_s:.2f} s ({1000 * per_second:.1f} ms per second of recording)'
+    )
+    return lines
+
+
+def _print(result: InferResult, output: Path) -> None:
+    print('\n'.join(_summary(result, output)))
+    for why in result.unusable.values():
+        print(f'warning: {why}', file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.jobs < 0:
+        raise CliError(f'--jobs must be >= 0 (0: one per core), got {args.jobs}')
+    settings = _settings(args)
+    if len(args.bag) > 1:
+        return _run_many(args, settings)
     bar = ProgressBar(enabled=not args.quiet)
     try:
         result = infer_bag(
-            args.bag, args.output, settings, args.vehicles, not args.no_inputs,
+            args.bag[0], args.output, settings, args.vehicles, not args.no_inputs,
             args.compression, bar,
         )  # fmt: skip
     except BagError as err:
         raise CliError(str(err)) from err
     finally:
         bar.close()
-    for v in result.vehicles:
-        rejected = sum(result.rejected[v].values()) + result.malformed[v]
-        detail = ', '.join(f'{k}: {n}' for k, n in sorted(result.rejected[v].items()))
-        if result.malformed[v]:
-            detail = ', '.join(filter(None, [detail, f'malformed: {result.malformed[v]}']))
-        print(
-            f'{v or "/"}: {result.steps[v]} steps, {rejected} input(s) rejected'
-            + (f' ({detail})' if detail else '')
-            + (f', {result.time_jumps[v]} time jump(s)' if result.time_jumps[v] else '')
-        )
-    for why in result.unusable.values():
-        print(f'warning: {why}', file=sys.stderr)
-    per_second = result.wall_s / max(result.duration_s, 1e-9)
-    print(
-        f'wrote {args.output}: {sum(result.written.values())} messages; '
-        f'{result.duration_s:.1f} s of recording (first to last message of the bag) in '
-        f'{result.wall_s:.2f} s ({1000 * per_second:.1f} ms per second of recording)'
-    )
+    _print(result, args.output)
     return 0
+
+
+def _infer_one(job: tuple) -> tuple[InferResult | None, str]:
+    """One bag of ``cloe infer BAG...``, in a worker process: (result, '') or (None, why)."""
+    bag, output, settings, vehicles, copy_inputs, compression = job
+    try:
+        return infer_bag(bag, output, settings, vehicles, copy_inputs, compression), ''
+    except (CloeError, BagError) as err:
+        return None, str(err)
+
+
+def _run_many(args: argparse.Namespace, settings: dict) -> int:
+    """Every bag into ``args.output/<its name>``, ``--jobs`` at once."""
+    names = [b.resolve().name for b in args.bag]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise CliError(
+            f'several input bags are named {", ".join(twice)}: their outputs would share '
+            f'{args.output}/<name>; infer them into separate folders'
+        )
+    out = args.output
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise CliError(f'{out} exists and is not an empty folder, not overwriting.')
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = min(args.jobs or os.cpu_count() or 1, len(args.bag))
+    work = [(bag, out / name, settings, args.vehicles, not args.no_inputs, args.compression)
+            for bag, name in zip(args.bag, names)]  # fmt: skip
+    failed = []
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for done, (job, (result, why)) in enumerate(
+            zip(work, pool.map(_infer_one, work)), start=1
+        ):
+            if result is None:
+                failed.append(why)
+            else:
+                _print(result, job[1])
+            if not args.quiet:
+                print(f'[{done}/{len(work)}] {job[0].name}', file=sys.stderr, flush=True)
+    for why in failed:
+        print(f'ERROR: {why}', file=sys.stderr)
+    if len(failed) == len(work):
+        raise CliError(f'none of the {len(work)} bags could be inferred')
+    return 1 if failed else 0

@@ -80,9 +80,12 @@ POSITION_JUMP = 1.0  # m
 #: An odometry gap longer than this many typical intervals (and ``MIN_HELD_GAP``), but shorter
 #: than ``max_gap``, is held aside too, so a single glitched stamp ahead costs one sample.
 HELD_INTERVALS = 10
-#: A gap of more than this many typical odometry intervals (below ``max_gap``) counts the samples
-#: that should have come in it as missing (``VehicleStats.odom_missing``).
+#: A gap of more than this many typical odometry intervals (a confirmed jump ahead included)
+#: counts the samples that should have come in it as missing (``VehicleStats.odom_missing``).
 MISSING_INTERVALS = 1.5
+#: The typical interval: the median of the short ones of this many latest gaps, once this many
+#: are short; gaps waiting for it, at most.
+MISSING_WINDOW, MISSING_BASIS, MAX_GAPS_WAITING = 64, 8, 100_000
 MIN_HELD_GAP = 50_000_000  # ns
 #: Longest accepted plan, poses (a minute at 100 Hz, and more).
 MAX_PLAN_POSES = 10_000
@@ -300,7 +303,9 @@ class VehicleEngine:
         self._held_odom: OdometrySample | None = None  # a jump in time, until the next one
         self._held_kind = ''  # why it is held: 'time jump', 'gap' or 'position jump'
         self._interval_ns: float | None = None  # typical odometry interval
-        self._regular_ns: float | None = None  # the same, from the gaps that are not holes
+        # the latest odometry gaps, for the stream's interval (_count_missing)
+        self._gaps: deque[int] = deque(maxlen=MISSING_WINDOW)
+        self._gaps_waiting: list[int] = []  # gaps not counted yet (no interval known)
         self._ref_interval_ns: float | None = None  # typical reference interval
         self._frame_learnt = False  # the frame was learnt from an input (not configured)
         self._other_frames: list[str] = []  # frames of the inputs refused in a row since
@@ -423,6 +428,9 @@ class VehicleEngine:
             if 0 < dt <= gap and _near(sample.position, held.position, dt):
                 # the new timeline (or the new place) goes on from the held sample: genuine
                 self._held_odom = None
+                if self._held_kind in ('time jump', 'position jump'):
+                    # the old timeline's last sample is about to be dropped: count the hole now
+                    self._count_missing(held.stamp_ns - self._odom[-1][0])
                 if self._held_kind == 'time jump':
                     self._time_jump(held.stamp_ns, backward=held.stamp_ns < self._odom[-1][0])
                 elif self._held_kind == 'position jump':
@@ -457,13 +465,33 @@ class VehicleEngine:
 
     def _count_missing(self, dt: int) -> None:
         """Count the samples missing between two stamps ``dt`` ns apart of a regular stream,
-        wherever they were lost (in DDS, in this node's queue when it fell behind, or never
-        sent), against the stream's interval learnt from the gaps that are not such holes."""
-        regular = self._regular_ns
-        if regular is None or dt <= MISSING_INTERVALS * regular:
-            self._regular_ns = dt if regular is None else regular + 0.05 * (dt - regular)
-        elif dt <= self.config.max_gap * NS:
-            self.stats.odom_missing += round(dt / regular) - 1
+        wherever they were lost (in DDS, in a subscription's queue while the node was busy or
+        stopped, or never sent).
+
+        The stream's interval is the median of its short gaps: of the latest ``MISSING_WINDOW``
+        gaps, those at most twice the shortest (jitter stays in, holes of two intervals or more
+        stay out). Until ``MISSING_BASIS`` such gaps agree, the gaps wait and are counted then:
+        a node that falls behind from its first message sees only holes at first. A confirmed
+        jump ahead counts too: DDS does not report what a full history overwrites, so a long run
+        lost there reads only as a jump of the stamps (a clock set ahead reads the same way;
+        ``time_jumps`` counts those). A jump back counts nothing."""
+        if dt <= 0:
+            return
+        gaps = self._gaps
+        gaps.append(dt)
+        shortest = min(gaps)
+        short = sorted(g for g in gaps if g <= 2 * shortest)
+        waiting = self._gaps_waiting
+        if len(short) < MISSING_BASIS:
+            if len(waiting) < MAX_GAPS_WAITING:
+                waiting.append(dt)
+            return
+        regular = short[len(short) // 2]
+        waiting.append(dt)
+        for gap in waiting:
+            if gap > MISSING_INTERVALS * regular:
+                self.stats.odom_missing += round(gap / regular) - 1
+        waiting.clear()
 
     def _held_gap(self, interval_ns: float | None) -> float:
         """The forward gap (ns) beyond which a sample is held aside until the next one."""

@@ -810,3 +810,37 @@ def test_channels_of_another_encoding_are_refused(sim_bag, tmp_path, capsys):
         status, out, err = run_infer(capsys, path, '-o', tmp_path / 'out')
         assert (status, out) == (1, '')
         assert err.startswith(f'ERROR: {path}: {expected}'), err
+
+
+def test_many_bags_in_parallel_as_one_by_one(sim_bag, default_output, tmp_path, capsys):
+    """``cloe infer A B C -o DIR --jobs 2``: each bag into DIR/<its name>, in worker processes,
+    with the outputs of a single run; one bag that fails is an ``ERROR:`` line naming it and exit
+    status 1, and the others are still written."""
+    other = tmp_path / 'in' / 'again'
+    shutil.copytree(sim_bag, other)
+    broken = tmp_path / 'in' / 'broken'
+    broken.mkdir()
+    (broken / 'broken.mcap').write_bytes(b'not a bag')
+    out = tmp_path / 'many'
+    status, stdout, err = run_infer(capsys, sim_bag, other, broken, '-o', out, '-q', '-j', '2')
+    assert 'Traceback' not in err, err
+    assert status == 1, err
+    assert err.count('ERROR: ') == 1 and str(broken) in err, err
+    assert sorted(p.name for p in out.iterdir()) == ['again', 'sim']
+    assert stdout.count('/: 1501 steps, 0 input(s) rejected') == 2, stdout
+    single = odometry_arrays(decoded(default_output, '/cloe/state'))[1]
+    for name in ('sim', 'again'):
+        np.testing.assert_array_equal(odometry_arrays(decoded(out / name, '/cloe/state'))[1],
+                                      single)  # fmt: skip
+
+
+def test_many_bags_refuse_a_used_folder_and_shared_names(sim_bag, tmp_path, capsys):
+    used = tmp_path / 'used'
+    used.mkdir()
+    (used / 'x').write_text('')
+    assert_error(capsys, f'{used} exists and is not an empty folder, not overwriting.',
+                 sim_bag, tmp_path / 'other', '-o', used, '-q')  # fmt: skip
+    assert_error(capsys, re.compile(r'ERROR: several input bags are named sim: .*'),
+                 sim_bag, sim_bag, '-o', tmp_path / 'new', '-q')  # fmt: skip
+    assert_error(capsys, '--jobs must be >= 0 (0: one per core), got -1',
+                 sim_bag, '-o', tmp_path / 'new', '-j', '-1')  # fmt: skip

@@ -224,6 +224,41 @@ def test_samples_missing_from_a_regular_stream_are_counted(flight):
     assert not engine.stats.rejected
 
 
+def test_a_long_run_lost_is_counted_across_the_time_jump_it_makes(flight):
+    """A run longer than ``max_gap`` lost from a regular stream (a full subscription history
+    overwrites it, and DDS reports nothing) reads as a jump ahead: once the next sample confirms
+    it, its samples are counted as missing, and the jump as a time jump. A jump back (a restarted
+    source) counts nothing."""
+    odoms, refs = messages(flight)
+    odoms, refs = odoms[:900], refs[:450]
+    assert len(odoms) == 900
+    lost = range(300, 550)  # 2.5 s at 100 Hz, beyond max_gap (1 s)
+    kept = [m for i, m in enumerate(odoms) if i not in lost]
+    engine = VehicleEngine(EngineConfig())
+    run(engine, in_time_order(kept, refs))
+    assert engine.stats.time_jumps == 1
+    assert engine.stats.odom_missing == len(lost) == 250
+    run(engine, in_time_order(odoms[:200], refs[:100]))  # the source restarts: a jump back
+    engine.finish()
+    assert engine.stats.time_jumps == 2
+    assert engine.stats.odom_missing == 250
+    assert not engine.stats.rejected
+
+
+def test_missing_samples_are_counted_when_the_first_gap_was_a_hole(flight):
+    """The stream's interval comes from its recent gaps, not from the first one: a node that
+    took its first sample and then fell behind at once (its first gap is a hole of 49 samples)
+    still counts every hole, that one included."""
+    odoms, refs = messages(flight)
+    odoms, refs = odoms[:900], refs[:450]
+    lost = set(range(1, 50)) | set(range(400, 700))
+    kept = [m for i, m in enumerate(odoms) if i not in lost]
+    engine = VehicleEngine(EngineConfig())
+    run(engine, in_time_order(kept, refs))
+    engine.finish()
+    assert engine.stats.odom_missing == len(lost) == 349
+
+
 def test_a_plan_is_refused_by_its_pose_count_alone(flight):
     engine = VehicleEngine(EngineConfig())
     assert engine.refuse_long_plan(MAX_PLAN_POSES) is None

@@ -1,0 +1,64 @@
+"""The batched estimator step alone: microseconds per vehicle per step, for N vehicles at once.
+
+    .venv/bin/python scripts/engine_benchmark.py [--vehicles 1 10 100] [--steps 2000]
+
+For each algorithm and each N: one estimator holding N vehicles (``make_estimator`` with (N, 12)
+states), stepped ``--steps`` times on a circle flown by every vehicle with its own phase; the
+median over 5 repeats of the process CPU time per step, divided by N. This is the estimator's
+cost only: the engine around it (input checks, the grid, anticipation, one per vehicle) and
+rclpy are not in it; ``scripts/swarm_benchmark.py`` measures the whole node.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from cloe_ros.core.algorithms import ALGORITHMS, make_estimator
+from cloe_ros.core.estimator import EstimatorConfig
+
+
+def circle(n: int, steps: int, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Measurements (steps, N, 12) and references (steps, N, 4) of N vehicles on circles."""
+    t = h * np.arange(steps)[:, None] + np.linspace(0.0, 2 * np.pi, n, endpoint=False)[None]
+    zeta = np.zeros((steps, n, 12))
+    zeta[..., 0], zeta[..., 1] = np.cos(0.5 * t), -0.5 * np.sin(0.5 * t)
+    zeta[..., 4], zeta[..., 5] = np.sin(0.5 * t), 0.5 * np.cos(0.5 * t)
+    zeta[..., 10] = 1.0
+    r = np.zeros((steps, n, 4))
+    r[..., 0], r[..., 1], r[..., 3] = zeta[..., 0], zeta[..., 4], 1.0
+    return zeta, r
+
+
+def per_vehicle_us(algorithm: str, n: int, steps: int, h: float = 0.01) -> float:
+    zeta, r = circle(n, steps + 1, h)
+    times = []
+    for _ in range(5):
+        est = make_estimator(EstimatorConfig(algorithm=algorithm), zeta[0], r[0], h)
+        start = time.process_time()
+        for k in range(1, steps + 1):
+            est.step(zeta[k], r[k], h)
+        times.append(time.process_time() - start)
+    return 1e6 * statistics.median(times) / steps / n
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--vehicles', type=int, nargs='+', default=[1, 10, 100])
+    parser.add_argument('--steps', type=int, default=2000)
+    parser.add_argument('--algorithms', nargs='+', default=list(ALGORITHMS), choices=ALGORITHMS)
+    args = parser.parse_args(argv)
+    print('| algorithm | ' + ' | '.join(f'N = {n}: µs per vehicle-step' for n in args.vehicles)
+          + ' |')  # fmt: skip
+    print('|---|' + '---|' * len(args.vehicles))
+    for algorithm in args.algorithms:
+        cells = [f'{per_vehicle_us(algorithm, n, args.steps):.2f}' for n in args.vehicles]
+        print(f'| {algorithm} | ' + ' | '.join(cells) + ' |', flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -195,8 +195,12 @@ def odometry_covariance(zeta_hat: np.ndarray, variance: np.ndarray) -> tuple[np.
       into the body, ``R^T diag R``, and the Euler-rate variances mapped to body rates,
       ``T diag T^T``.
 
-    Symmetric positive-definite wherever the Euler rates are defined (pitch within +-90 deg)."""
+    Symmetric positive-definite wherever the Euler rates are defined (pitch within +-90 deg).
+    One state (12,) takes a path of scalar trigonometry and 3x3 products (each ``cloe/state``
+    message is one); it equals the batched one to round-off."""
     variance = np.asarray(variance, dtype=float)
+    if variance.ndim == 1:
+        return _odometry_covariance_one(np.asarray(zeta_hat, dtype=float), variance)
     rt, t = body_jacobians(zeta_hat)
     shape = variance.shape[:-1]
     pose = np.zeros((*shape, 6, 6))
@@ -208,4 +212,28 @@ def odometry_covariance(zeta_hat: np.ndarray, variance: np.ndarray) -> tuple[np.
     angular = np.einsum('...ij,...j,...kj->...ik', t, variance[..., EULER_RATES], t)
     twist[..., :3, :3] = 0.5 * (linear + np.swapaxes(linear, -1, -2))
     twist[..., 3:, 3:] = 0.5 * (angular + np.swapaxes(angular, -1, -2))
+    return pose, twist
+
+
+_DIAGONAL = np.arange(3)
+
+
+def _odometry_covariance_one(zeta: np.ndarray, variance: np.ndarray) -> tuple[np.ndarray, ...]:
+    cr, sr = math.cos(zeta[6]), math.sin(zeta[6])
+    cp, sp = math.cos(zeta[2]), math.sin(zeta[2])
+    cy, sy = math.cos(zeta[8]), math.sin(zeta[8])
+    rot = np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])  # fmt: skip
+    rates = np.array([[1.0, 0.0, -sp], [0.0, cr, cp * sr], [0.0, -sr, cp * cr]])
+    linear = (rot.T * variance[VELOCITY]) @ rot  # R^T diag(v) R
+    angular = (rates * variance[EULER_RATES]) @ rates.T  # T diag(v) T^T
+    pose = np.zeros((6, 6))
+    pose[_DIAGONAL, _DIAGONAL] = variance[POSITION]
+    pose[_DIAGONAL + 3, _DIAGONAL + 3] = variance[ATTITUDE]
+    twist = np.zeros((6, 6))
+    twist[:3, :3] = 0.5 * (linear + linear.T)
+    twist[3:, 3:] = 0.5 * (angular + angular.T)
     return pose, twist

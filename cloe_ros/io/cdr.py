@@ -310,3 +310,52 @@ class MultiArrayLayout:
         if len(data):  # (no padding before an empty sequence, as rosbags writes it)
             w.align(8)
         return bytes(w.buf) + data.tobytes()
+
+
+class NamedValuesLayout:
+    """The bytes of a ``rcl_interfaces/msg/ParameterEvent`` carrying fixed names as doubles
+    (io/messages.py ``encode_named_values``), built once per source and names: encoding a message
+    is then a copy, the stamp and the doubles written in place.
+
+    Each ``Parameter`` is ``string name`` and a ``ParameterValue``: ``uint8 type`` (3, double),
+    ``bool``, ``int64``, ``float64 double_value``, ``string`` and five empty sequences; where the
+    doubles fall depends only on the names, not on the values or the stamp.
+    """
+
+    PARAMETER_DOUBLE = 3
+
+    def __init__(self, source: str, names: Sequence[str]) -> None:
+        w = _Writer()
+        w.align(4)
+        w.buf += bytes(8)  # the stamp, written per message
+        w.string(source)
+        w.uint32(len(names))
+        at = []
+        for name in names:
+            w.string(name)
+            w.buf += bytes((self.PARAMETER_DOUBLE, 0))  # type, bool_value
+            w.align(8)
+            w.buf += bytes(8)  # integer_value
+            at.append(len(w.buf))
+            w.buf += bytes(8)  # double_value
+            w.string('')  # string_value
+            for _ in range(5):  # byte, bool, integer, double, string arrays: empty
+                w.uint32(0)
+        w.uint32(0)  # changed_parameters
+        w.uint32(0)  # deleted_parameters
+        self._template = bytes(w.buf)
+        self._bytes = (np.asarray(at, dtype=np.intp)[:, None] + np.arange(8)).ravel()
+        self.size = len(names)
+
+    def encode(self, stamp_ns: int, values: np.ndarray) -> bytes:
+        values = np.ascontiguousarray(values, dtype='<f8').ravel()
+        if values.size != self.size:
+            msg = f'{self.size} names for {values.size} values'
+            raise ValueError(msg)
+        w = _Writer()
+        w.buf = bytearray(self._template)
+        stamp = _Writer()
+        stamp.stamp(stamp_ns)
+        w.buf[4:12] = stamp.buf[4:]
+        np.frombuffer(w.buf, dtype=np.uint8)[self._bytes] = values.view(np.uint8)
+        return bytes(w.buf)

@@ -63,10 +63,6 @@ MarkerArray = _T[MARKER_ARRAY]
 MeshFile = _T['visualization_msgs/msg/MeshFile']
 CompressedImage = _T['sensor_msgs/msg/CompressedImage']
 String = _T[STRING]
-ParameterEvent = _T[PARAMETER_EVENT]
-Parameter = _T['rcl_interfaces/msg/Parameter']
-ParameterValue = _T['rcl_interfaces/msg/ParameterValue']
-PARAMETER_DOUBLE = 3  # rcl_interfaces/msg/ParameterType
 
 
 def stamp_to_ns(stamp) -> int:
@@ -199,14 +195,9 @@ def decode_string(raw: bytes | memoryview) -> str:
     return _deserialize(raw, STRING).data
 
 
-def _double(value: float):
-    empty = np.zeros(0)
-    return ParameterValue(
-        type=PARAMETER_DOUBLE, bool_value=False, integer_value=0, double_value=float(value),
-        string_value='', byte_array_value=np.zeros(0, np.uint8),
-        bool_array_value=np.zeros(0, bool), integer_array_value=np.zeros(0, np.int64),
-        double_array_value=empty, string_array_value=[],
-    )  # fmt: skip
+@lru_cache(maxsize=256)
+def _named_values_layout(source: str, labels: tuple[str, ...]) -> cdr.NamedValuesLayout:
+    return cdr.NamedValuesLayout(source, labels)
 
 
 def encode_named_values(
@@ -215,17 +206,13 @@ def encode_named_values(
     """CDR of a ``rcl_interfaces/msg/ParameterEvent`` carrying ``values`` as named doubles in
     ``new_parameters`` (``name`` = the label, ``value.double_value``), ``node`` = ``source``: a
     standard message whose array elements a viewer can pick by name (Foxglove:
-    ``.new_parameters[:]{name=="theta_hat.x_theta.a_x"}.value.double_value``)."""
+    ``.new_parameters[:]{name=="theta_hat.x_theta.a_x"}.value.double_value``). The layout of
+    each source and labels is built once (:class:`~cloe_ros.io.cdr.NamedValuesLayout`)."""
     values = np.asarray(values, dtype=np.float64)
     if len(labels) != values.size:
         msg = f'{len(labels)} labels for {values.size} values'
         raise ValueError(msg)
-    msg = ParameterEvent(
-        stamp=ns_to_time(stamp_ns), node=source,
-        new_parameters=[Parameter(name=n, value=_double(v)) for n, v in zip(labels, values)],
-        changed_parameters=[], deleted_parameters=[],
-    )  # fmt: skip
-    return bytes(TYPESTORE.serialize_cdr(msg, PARAMETER_EVENT))
+    return _named_values_layout(source, tuple(labels)).encode(stamp_ns, values)
 
 
 def decode_named_values(raw: bytes | memoryview) -> tuple[int, str, list[str], np.ndarray]:

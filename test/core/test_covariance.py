@@ -69,6 +69,21 @@ def test_the_twist_covariance_maps_through_the_body_jacobians():
     assert np.count_nonzero(pose - np.diag(np.diag(pose))) == 0
 
 
+def test_one_state_gives_the_batched_covariances():
+    """``cloe/state`` takes one state at a time on a path of its own: it equals the batched
+    path, state by state, to round-off."""
+    rng = np.random.default_rng(3)
+    zeta = rng.normal(size=(50, 12))
+    zeta[:, [6, 2]] = rng.uniform(-1.3, 1.3, size=(50, 2))
+    variance = rng.uniform(1e-6, 1e-2, size=(50, 12))
+    pose, twist = odometry_covariance(zeta, variance)
+    for k in range(50):
+        one_pose, one_twist = odometry_covariance(zeta[k], variance[k])
+        np.testing.assert_array_equal(one_pose, pose[k])
+        np.testing.assert_allclose(one_twist, twist[k], rtol=1e-13, atol=1e-18)
+        np.testing.assert_array_equal(one_twist, one_twist.T)
+
+
 @pytest.fixture(scope='module')
 def noisy_flight():
     """40 s of the position scenario, disturbed, with the evaluation's noise (2 mm, 1 cm/s,

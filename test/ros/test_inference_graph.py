@@ -293,6 +293,14 @@ def test_three_shards_split_twelve_simulated_vehicles(ros, tmp_path: Path) -> No
             '\n'.join(p.output()[-2000:] for p in procs),
         )
         reported = {i: set(diagnostics.values(f'shard{i}')['vehicles'].split()) for i in range(3)}
+
+        def named() -> bool:
+            # a publisher's endpoint can be discovered before its node's name ('_NODE_NAME_
+            # UNKNOWN_' until then): wait for the names, then look
+            return all(p.node_name != '_NODE_NAME_UNKNOWN_' for v in vehicles
+                       for p in ros.node.get_publishers_info_by_topic(f'{v}/cloe/state'))
+
+        assert spin_until(ros.executor, named, 60)
         for v in vehicles:
             publishers = ros.node.get_publishers_info_by_topic(f'{v}/cloe/state')
             assert [p.node_name for p in publishers] == [f'shard{shard_of(v, 3)}'], v

@@ -86,6 +86,8 @@ MISSING_INTERVALS = 1.5
 #: The typical interval: the median of the short ones of this many latest gaps, once this many
 #: are short; gaps waiting for it, at most.
 MISSING_WINDOW, MISSING_BASIS, MAX_GAPS_WAITING = 64, 8, 100_000
+#: Rejected odometry stamps kept to tell a gap's rejected samples from its missing ones.
+MAX_REJECTED_STAMPS = 1024
 MIN_HELD_GAP = 50_000_000  # ns
 #: Longest accepted plan, poses (a minute at 100 Hz, and more).
 MAX_PLAN_POSES = 10_000
@@ -305,7 +307,9 @@ class VehicleEngine:
         self._interval_ns: float | None = None  # typical odometry interval
         # the latest odometry gaps, for the stream's interval (_count_missing)
         self._gaps: deque[int] = deque(maxlen=MISSING_WINDOW)
-        self._gaps_waiting: list[int] = []  # gaps not counted yet (no interval known)
+        self._gaps_waiting: list[tuple[int, int]] = []  # (gap, rejected in it), not counted yet
+        # stamps of odometry rejected, not yet passed by the accepted stream
+        self._rejected_stamps: deque[int] = deque(maxlen=MAX_REJECTED_STAMPS)
         self._ref_interval_ns: float | None = None  # typical reference interval
         self._frame_learnt = False  # the frame was learnt from an input (not configured)
         self._other_frames: list[str] = []  # frames of the inputs refused in a row since
@@ -420,6 +424,7 @@ class VehicleEngine:
         self.stats.odom_received += 1
         problem = self._odometry_problem(sample)
         if problem:
+            self._rejected_stamps.append(sample.stamp_ns)
             return self._reject(*problem)
         stamp, gap = sample.stamp_ns, self.config.max_gap * NS
         held = self._held_odom
@@ -430,7 +435,7 @@ class VehicleEngine:
                 self._held_odom = None
                 if self._held_kind in ('time jump', 'position jump'):
                     # the old timeline's last sample is about to be dropped: count the hole now
-                    self._count_missing(held.stamp_ns - self._odom[-1][0])
+                    self._count_missing(self._odom[-1][0], held.stamp_ns)
                 if self._held_kind == 'time jump':
                     self._time_jump(held.stamp_ns, backward=held.stamp_ns < self._odom[-1][0])
                 elif self._held_kind == 'position jump':
@@ -442,6 +447,7 @@ class VehicleEngine:
                 return self._reject('duplicate stamp', seconds(stamp))
             self._held_odom = None
             reason = 'position outlier' if self._held_kind == 'position jump' else 'stamp outlier'
+            self._rejected_stamps.append(held.stamp_ns)
             self._reject_outlier(held.stamp_ns, reason, NOT_CONTINUED)
         if self._odom:
             last, previous = self._odom[-1][0], self._odom[-1][1]
@@ -463,10 +469,11 @@ class VehicleEngine:
         self._accept_odometry(sample)
         return None
 
-    def _count_missing(self, dt: int) -> None:
-        """Count the samples missing between two stamps ``dt`` ns apart of a regular stream,
-        wherever they were lost (in DDS, in a subscription's queue while the node was busy or
-        stopped, or never sent).
+    def _count_missing(self, previous_ns: int, stamp_ns: int) -> None:
+        """Count the samples missing between two accepted stamps of a regular stream: those that
+        never arrived, wherever they were lost (in DDS, in a subscription's queue while the node
+        was busy or stopped, or never sent); a sample that arrived in the gap and was rejected is
+        not missing.
 
         The stream's interval is the median of its short gaps: of the latest ``MISSING_WINDOW``
         gaps, those at most twice the shortest (jitter stays in, holes of two intervals or more
@@ -475,6 +482,13 @@ class VehicleEngine:
         jump ahead counts too: DDS does not report what a full history overwrites, so a long run
         lost there reads only as a jump of the stamps (a clock set ahead reads the same way;
         ``time_jumps`` counts those). A jump back counts nothing."""
+        dt = stamp_ns - previous_ns
+        inside = 0
+        if self._rejected_stamps:
+            inside = sum(previous_ns < s < stamp_ns for s in self._rejected_stamps)
+            self._rejected_stamps = deque(
+                (s for s in self._rejected_stamps if s >= stamp_ns), maxlen=MAX_REJECTED_STAMPS
+            )
         if dt <= 0:
             return
         gaps = self._gaps
@@ -484,13 +498,13 @@ class VehicleEngine:
         waiting = self._gaps_waiting
         if len(short) < MISSING_BASIS:
             if len(waiting) < MAX_GAPS_WAITING:
-                waiting.append(dt)
+                waiting.append((dt, inside))
             return
         regular = short[len(short) // 2]
-        waiting.append(dt)
-        for gap in waiting:
+        waiting.append((dt, inside))
+        for gap, arrived in waiting:
             if gap > MISSING_INTERVALS * regular:
-                self.stats.odom_missing += round(gap / regular) - 1
+                self.stats.odom_missing += max(0, round(gap / regular) - 1 - arrived)
         waiting.clear()
 
     def _held_gap(self, interval_ns: float | None) -> float:
@@ -519,7 +533,7 @@ class VehicleEngine:
         if not self.child_frame:
             self.child_frame = sample.child_frame_id
         if self._odom:
-            self._count_missing(sample.stamp_ns - self._odom[-1][0])
+            self._count_missing(self._odom[-1][0], sample.stamp_ns)
         self._odom.append((sample.stamp_ns, zeta))
         self.stats.odom_accepted += 1
         held = self._held_refs

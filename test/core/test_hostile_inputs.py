@@ -224,6 +224,26 @@ def test_samples_missing_from_a_regular_stream_are_counted(flight):
     assert not engine.stats.rejected
 
 
+def test_a_sample_that_arrived_and_was_rejected_is_not_missing(flight):
+    """Received and missing add up to what was sent: a sample rejected (NaN) between two
+    accepted ones, or held aside alone between two long holes and rejected as a stamp outlier
+    for want of a sample continuing it, arrived; its slot is not counted missing."""
+    odoms, refs = messages(flight)
+    odoms, refs = odoms[:900], refs[:450]
+    lost = set(range(300, 450)) | set(range(451, 600))  # 450 alone between two 1.5 s holes
+    stamp, sample = odoms[200]
+    odoms[200] = (stamp, replace(sample, position=np.array([np.nan, 0.0, 1.0])))
+    kept = [m for i, m in enumerate(odoms) if i not in lost]
+    engine = VehicleEngine(EngineConfig())
+    for kind, m in in_time_order(kept, refs):
+        (engine.add_odometry if kind == 'odom' else engine.add_reference)(m)
+        engine.advance()
+    engine.finish()
+    assert dict(engine.stats.rejected) == {'non-finite odometry': 1, 'stamp outlier': 1}
+    assert engine.stats.odom_received == 900 - len(lost)
+    assert engine.stats.odom_missing == len(lost) == 299
+
+
 def test_a_long_run_lost_is_counted_across_the_time_jump_it_makes(flight):
     """A run longer than ``max_gap`` lost from a regular stream (a full subscription history
     overwrites it, and DDS reports nothing) reads as a jump ahead: once the next sample confirms

@@ -99,6 +99,53 @@ def test_messages_lost_in_dds_are_counted_per_topic(ros, tmp_path: Path) -> None
         node.stop(signal.SIGKILL)
 
 
+def test_what_the_subscription_history_overwrites_is_counted_by_the_stamps(ros, tmp_path):
+    """The node (qos_depth 100) is stopped (SIGSTOP) while a reliable publisher whose history
+    holds all 3000 messages publishes them. When it runs again its DDS threads take the messages
+    faster than it handles them, its own history overwrites all but the last ones, and DDS
+    reports none of that (``odom_lost`` 0): the odometry's stamps show the hole, and
+    ``odom_missing`` counts it, so that what was received plus what is missing is what was
+    published."""
+    n = 3000
+    pub = ros.node.create_publisher(
+        Odometry, '/odom', QoSProfile(depth=n, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    diagnostics = Diagnostics(ros)
+    node = start_node('cloe_inference', {'diagnostics_period': 0.2, 'qos_depth': 100},
+                      ros.domain, tmp_path)  # fmt: skip
+    name = 'cloe_inference: /'
+
+    def counts() -> tuple[int, int, int]:
+        values = diagnostics.values(name)
+        return tuple(int(values.get(k, 0)) for k in ('odom_received', 'odom_missing',
+                                                     'odom_lost'))  # fmt: skip
+
+    try:
+        assert spin_until(ros.executor, lambda: pub.get_subscription_count() >= 1, 60), (
+            node.output()
+        )
+        first = 50  # a regular start, taken before the stop
+        for k in range(first):
+            pub.publish(odometry(k))
+        assert spin_until(ros.executor, lambda: counts()[0] >= first, 60), node.output()
+        os.kill(node.proc.pid, signal.SIGSTOP)
+        try:
+            for k in range(first, n):
+                pub.publish(odometry(k))
+        finally:
+            os.kill(node.proc.pid, signal.SIGCONT)
+        assert spin_until(ros.executor, lambda: sum(counts()[:2]) >= n, 120), (
+            counts(), node.output())  # fmt: skip
+        received, missing, lost = counts()
+        print(f'published {n}: received {received}, missing {missing}, lost in DDS {lost}')
+        assert received < n and missing > 0 and received + missing == n
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        if node.proc.poll() is None:
+            os.kill(node.proc.pid, signal.SIGCONT)
+        node.stop(signal.SIGKILL)
+
+
 # -- vehicles: listed, discovered, sharded -------------------------------------------------------
 
 

@@ -437,3 +437,21 @@ def test_the_estimate_does_not_depend_on_the_origin_of_the_world_frame(disturbed
     there = run_identifier(THETA, t, moved_r, moved_zeta)
     np.testing.assert_allclose(there.theta[0], here.theta[0], rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(there.status[0], here.status[0])
+
+
+def test_the_filters_tustin_step_is_scipys_to_the_bit():
+    """identifier.tustin does what scipy.signal.cont2discrete(method='bilinear') does (the node
+    no longer imports scipy.signal for it), with the same operations: the same bits."""
+    from scipy.signal import cont2discrete
+
+    from cloe_ros.core.identifier import tustin
+
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        n = int(rng.integers(1, 6))
+        a, b = 10.0 * rng.normal(size=(n, n)), rng.normal(size=(n, 2))
+        c, d = rng.normal(size=(3, n)), rng.normal(size=(3, 2))
+        h = 10.0 ** rng.uniform(-4, -1)
+        want = cont2discrete((a, b, c, d), h, method='bilinear')[:4]
+        for got, expected in zip(tustin(a, b, c, d, h), want):
+            np.testing.assert_array_equal(got, expected)

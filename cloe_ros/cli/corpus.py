@@ -19,6 +19,7 @@ import numpy as np
 
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.outputs import check_new_file
+from cloe_ros.cli.workers import worker_count
 from cloe_ros.core.evaluation import BASELINES, HORIZONS, FlightScore, score_flight
 from cloe_ros.errors import CloeError
 from cloe_ros.io.config import build_configs, load_settings
@@ -79,14 +80,12 @@ def run_corpus(args) -> int:
     build_configs(settings)
     if args.json:
         check_new_file(args.json, args.force, '--json')
-    if args.jobs < 0:
-        raise CliError(f'--jobs must be >= 0 (0: one per core), got {args.jobs}')
+    worker_count(args.jobs, 1)  # a bad --jobs is an error before the bags are searched
     bags = find_bags(list(args.paths))
-    jobs = args.jobs or os.cpu_count() or 1
     scores: list[FlightScore] = []
     failed: list[tuple[Path, str]] = []
     work = [(b, settings, args.score_from) for b in bags]
-    with ProcessPoolExecutor(max_workers=min(jobs, len(bags))) as pool:
+    with ProcessPoolExecutor(max_workers=worker_count(args.jobs, len(bags))) as pool:
         for done, (path, result) in enumerate(pool.map(_evaluate, work), start=1):
             if isinstance(result, str):
                 failed.append((path, result))

@@ -7,7 +7,6 @@ still written; the exit status is then 1."""
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
 import sys
 import time
@@ -17,7 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cloe_ros.cli.errors import CliError
+from cloe_ros.cli.outputs import check_folder, make_folder
 from cloe_ros.cli.progress import ProgressBar
+from cloe_ros.cli.workers import worker_count
 from cloe_ros.core.engine import NS, VehicleEngine
 from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
@@ -234,37 +235,31 @@ def _settings(args: argparse.Namespace) -> dict:
     return settings
 
 
-def _summary(result: InferResult, output: Path) -> list[str]:
-    """What ``cloe infer`` prints of a run: per vehicle, then what was written."""
-    lines = []
+def _print(result: InferResult, output: Path) -> None:
+    """What ``cloe infer`` prints of a run: per vehicle, what was written, and a warning per
+    vehicle that gave no estimate."""
     for v in result.vehicles:
         rejected = sum(result.rejected[v].values()) + result.malformed[v]
         detail = ', '.join(f'{k}: {n}' for k, n in sorted(result.rejected[v].items()))
         if result.malformed[v]:
             detail = ', '.join(filter(None, [detail, f'malformed: {result.malformed[v]}']))
-        lines.append(
+        print(
             f'{v or "/"}: {result.steps[v]} steps, {rejected} input(s) rejected'
             + (f' ({detail})' if detail else '')
             + (f', {result.time_jumps[v]} time jump(s)' if result.time_jumps[v] else '')
         )
     per_second = result.wall_s / max(result.duration_s, 1e-9)
-    lines.append(
+    print(
         f'wrote {output}: {sum(result.written.values())} messages; '
         f'{result.duration_s:.1f} s of recording (first to last message of the bag) in '
         f'{result.wall_s:.2f} s ({1000 * per_second:.1f} ms per second of recording)'
     )
-    return lines
-
-
-def _print(result: InferResult, output: Path) -> None:
-    print('\n'.join(_summary(result, output)))
     for why in result.unusable.values():
         print(f'warning: {why}', file=sys.stderr)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.jobs < 0:
-        raise CliError(f'--jobs must be >= 0 (0: one per core), got {args.jobs}')
+    worker_count(args.jobs, len(args.bag))  # a bad --jobs is an error before any work
     settings = _settings(args)
     if len(args.bag) > 1:
         return _run_many(args, settings)
@@ -294,17 +289,16 @@ def _infer_one(job: tuple) -> tuple[InferResult | None, str]:
 def _run_many(args: argparse.Namespace, settings: dict) -> int:
     """Every bag into ``args.output/<its name>``, ``--jobs`` at once."""
     names = [b.resolve().name for b in args.bag]
-    twice = sorted({n for n in names if names.count(n) > 1})
+    twice = sorted(n for n, count in Counter(names).items() if count > 1)
     if twice:
         raise CliError(
             f'several input bags are named {", ".join(twice)}: their outputs would share '
             f'{args.output}/<name>; infer them into separate folders'
         )
     out = args.output
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise CliError(f'{out} exists and is not an empty folder, not overwriting.')
-    out.mkdir(parents=True, exist_ok=True)
-    jobs = min(args.jobs or os.cpu_count() or 1, len(args.bag))
+    check_folder(out, False, None)
+    make_folder(out)
+    jobs = worker_count(args.jobs, len(args.bag))
     work = [(bag, out / name, settings, args.vehicles, not args.no_inputs, args.compression)
             for bag, name in zip(args.bag, names)]  # fmt: skip
     failed = []

@@ -30,15 +30,17 @@ def check_new_file(path: Path, force: bool, option: str) -> None:
         raise CliError(f'cannot write {option} {path}: permission denied')
 
 
-def check_folder(folder: Path, force: bool, replaced: str) -> None:
+def check_folder(folder: Path, force: bool, replaced: str | None) -> None:
     """Refuse, before any work, a ``folder`` that is a file, or that is not empty and ``force``
-    is not given (``replaced``: what ``--force`` replaces in it)."""
+    is not given (``replaced``: what ``--force`` replaces in it; None: the command has no
+    ``--force``)."""
     if folder.exists() and not folder.is_dir():
         raise CliError(f'{folder} exists and is not a folder: choose another folder with -o')
     if folder.is_dir() and any(folder.iterdir()) and not force:
+        hint = '' if replaced is None else f' or pass --force to replace {replaced} in it'
         raise CliError(
-            f'{folder} exists and is not empty, not overwriting: choose another folder with -o '
-            f'or pass --force to replace {replaced} in it'
+            f'{folder} exists and is not empty, not overwriting: choose another folder with -o'
+            + hint
         )
 
 

@@ -43,6 +43,7 @@ import math
 
 import numpy as np
 
+from cloe_ros.core.kinematics import euler_to_rotation, euler_to_rotation_one
 from cloe_ros.core.model import N_STATES
 
 #: Conservative standard deviations before enough statistics, per state of ``zeta``: position
@@ -161,6 +162,7 @@ class ErrorCovariance:
 #: Indices in ``zeta`` of position (x, y, z), attitude (roll, pitch, yaw), world velocity and
 #: Euler rates (roll, pitch, yaw rates).
 POSITION, ATTITUDE, VELOCITY, EULER_RATES = [0, 4, 10], [6, 2, 8], [1, 5, 11], [7, 3, 9]
+_DIAGONAL = np.arange(3)
 
 
 def body_jacobians(zeta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -170,13 +172,8 @@ def body_jacobians(zeta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     zeta = np.asarray(zeta, dtype=float)
     roll, pitch, yaw = zeta[..., 6], zeta[..., 2], zeta[..., 8]
     cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
-    cy, sy = np.cos(yaw), np.sin(yaw)
     zero, one = np.zeros_like(roll), np.ones_like(roll)
-    rot = np.stack([
-        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
-        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
-        np.stack([-sp, cp * sr, cp * cr], -1),
-    ], -2)  # fmt: skip
+    rot = euler_to_rotation(roll, pitch, yaw)
     rates = np.stack([
         np.stack([one, zero, -sp], -1),
         np.stack([zero, cr, cp * sr], -1),
@@ -205,9 +202,8 @@ def odometry_covariance(zeta_hat: np.ndarray, variance: np.ndarray) -> tuple[np.
     shape = variance.shape[:-1]
     pose = np.zeros((*shape, 6, 6))
     twist = np.zeros((*shape, 6, 6))
-    idx = np.arange(3)
-    pose[..., idx, idx] = variance[..., POSITION]
-    pose[..., idx + 3, idx + 3] = variance[..., ATTITUDE]
+    pose[..., _DIAGONAL, _DIAGONAL] = variance[..., POSITION]
+    pose[..., _DIAGONAL + 3, _DIAGONAL + 3] = variance[..., ATTITUDE]
     linear = np.einsum('...ij,...j,...kj->...ik', rt, variance[..., VELOCITY], rt)
     angular = np.einsum('...ij,...j,...kj->...ik', t, variance[..., EULER_RATES], t)
     twist[..., :3, :3] = 0.5 * (linear + np.swapaxes(linear, -1, -2))
@@ -215,18 +211,10 @@ def odometry_covariance(zeta_hat: np.ndarray, variance: np.ndarray) -> tuple[np.
     return pose, twist
 
 
-_DIAGONAL = np.arange(3)
-
-
 def _odometry_covariance_one(zeta: np.ndarray, variance: np.ndarray) -> tuple[np.ndarray, ...]:
+    rot = euler_to_rotation_one(zeta[6], zeta[2], zeta[8])
     cr, sr = math.cos(zeta[6]), math.sin(zeta[6])
     cp, sp = math.cos(zeta[2]), math.sin(zeta[2])
-    cy, sy = math.cos(zeta[8]), math.sin(zeta[8])
-    rot = np.array([
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ])  # fmt: skip
     rates = np.array([[1.0, 0.0, -sp], [0.0, cr, cp * sr], [0.0, -sr, cp * cr]])
     linear = (rot.T * variance[VELOCITY]) @ rot  # R^T diag(v) R
     angular = (rates * variance[EULER_RATES]) @ rates.T  # T diag(v) T^T

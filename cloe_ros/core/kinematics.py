@@ -70,6 +70,18 @@ def euler_to_rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> n
     return rot
 
 
+def euler_to_rotation_one(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """:func:`euler_to_rotation` of one attitude (3, 3), by scalar trigonometry."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])  # fmt: skip
+
+
 def body_rates_to_euler_rates(euler: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """Euler-angle rates ``(roll_dot, pitch_dot, yaw_dot)`` from body rates ``(p, q, r)``.
 

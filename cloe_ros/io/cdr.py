@@ -180,6 +180,16 @@ def decode_path(raw: bytes | memoryview, max_poses: int | None = None) -> PathSa
     return PathSample(stamp, frame, stamps, values[:, :3], values[:, 3:])
 
 
+def _time_bytes(stamp_ns: int) -> bytes:
+    """A ``builtin_interfaces/Time``, little-endian: ``int32 sec, uint32 nanosec``."""
+    stamp_ns = int(stamp_ns)
+    if not MIN_STAMP_NS <= stamp_ns <= MAX_STAMP_NS:
+        msg = (f'stamp {stamp_ns} ns is beyond what a ROS message carries (int32 seconds, '
+               '2038-01-19)')  # fmt: skip
+        raise MessageError(msg)
+    return struct.pack('<iI', *divmod(stamp_ns, NS))
+
+
 class _Writer:
     """Little-endian CDR, built into one bytearray."""
 
@@ -192,13 +202,8 @@ class _Writer:
         self.buf += bytes(-(len(self.buf) - 4) % size)
 
     def stamp(self, stamp_ns: int) -> None:
-        stamp_ns = int(stamp_ns)
-        if not MIN_STAMP_NS <= stamp_ns <= MAX_STAMP_NS:
-            msg = (f'stamp {stamp_ns} ns is beyond what a ROS message carries (int32 seconds, '
-                   '2038-01-19)')  # fmt: skip
-            raise MessageError(msg)
         self.align(4)
-        self.buf += struct.pack('<iI', *divmod(stamp_ns, NS))
+        self.buf += _time_bytes(stamp_ns)
 
     def string(self, text: str) -> None:
         data = text.encode()
@@ -326,7 +331,6 @@ class NamedValuesLayout:
 
     def __init__(self, source: str, names: Sequence[str]) -> None:
         w = _Writer()
-        w.align(4)
         w.buf += bytes(8)  # the stamp, written per message
         w.string(source)
         w.uint32(len(names))
@@ -352,10 +356,7 @@ class NamedValuesLayout:
         if values.size != self.size:
             msg = f'{self.size} names for {values.size} values'
             raise ValueError(msg)
-        w = _Writer()
-        w.buf = bytearray(self._template)
-        stamp = _Writer()
-        stamp.stamp(stamp_ns)
-        w.buf[4:12] = stamp.buf[4:]
-        np.frombuffer(w.buf, dtype=np.uint8)[self._bytes] = values.view(np.uint8)
-        return bytes(w.buf)
+        buf = bytearray(self._template)
+        buf[4:12] = _time_bytes(stamp_ns)
+        np.frombuffer(buf, dtype=np.uint8)[self._bytes] = values.view(np.uint8)
+        return bytes(buf)

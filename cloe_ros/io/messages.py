@@ -208,10 +208,6 @@ def encode_named_values(
     standard message whose array elements a viewer can pick by name (Foxglove:
     ``.new_parameters[:]{name=="theta_hat.x_theta.a_x"}.value.double_value``). The layout of
     each source and labels is built once (:class:`~cloe_ros.io.cdr.NamedValuesLayout`)."""
-    values = np.asarray(values, dtype=np.float64)
-    if len(labels) != values.size:
-        msg = f'{len(labels)} labels for {values.size} values'
-        raise ValueError(msg)
     return _named_values_layout(source, tuple(labels)).encode(stamp_ns, values)
 
 

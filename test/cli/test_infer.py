@@ -838,7 +838,8 @@ def test_many_bags_refuse_a_used_folder_and_shared_names(sim_bag, tmp_path, caps
     used = tmp_path / 'used'
     used.mkdir()
     (used / 'x').write_text('')
-    assert_error(capsys, f'{used} exists and is not an empty folder, not overwriting.',
+    assert_error(capsys, f'{used} exists and is not empty, not overwriting: choose another '
+                 'folder with -o',
                  sim_bag, tmp_path / 'other', '-o', used, '-q')  # fmt: skip
     assert_error(capsys, re.compile(r'ERROR: several input bags are named sim: .*'),
                  sim_bag, sim_bag, '-o', tmp_path / 'new', '-q')  # fmt: skip

@@ -9,6 +9,7 @@ from cloe_ros.core.kinematics import (
     euler_rates_to_body_rates,
     euler_to_quaternion,
     euler_to_rotation,
+    euler_to_rotation_one,
     odometry_to_state,
     quaternion_to_euler,
     quaternion_to_euler_one,
@@ -45,6 +46,8 @@ def test_euler_quaternion_rotation_agree():
         roll, pitch, yaw = rng.uniform(-1.4, 1.4), rng.uniform(-1.4, 1.4), rng.uniform(-3.1, 3.1)
         r_zyx = _rot_axis('z', yaw) @ _rot_axis('y', pitch) @ _rot_axis('x', roll)
         np.testing.assert_allclose(euler_to_rotation(roll, pitch, yaw), r_zyx, atol=1e-12)
+        one = euler_to_rotation_one(roll, pitch, yaw)
+        np.testing.assert_allclose(one, euler_to_rotation(roll, pitch, yaw), rtol=0, atol=1e-15)
         q = euler_to_quaternion(roll, pitch, yaw)
         np.testing.assert_allclose(_quat_to_rot(q), r_zyx, atol=1e-12)
         np.testing.assert_allclose(quaternion_to_euler(q), [roll, pitch, yaw], atol=1e-9)

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cloe_ros.core import evaluation
 from cloe_ros.core.kinematics import wrap_angle
 from cloe_ros.core.metrics import parameter_error, rmse_norm, subsystem_itae, subsystem_rmse
 from cloe_ros.core.model import N_PARAMS
@@ -13,14 +14,11 @@ from cloe_ros.io.dataset import Series, VehicleData
 
 
 def interpolate(series: Series, t_ns: np.ndarray) -> np.ndarray:
-    """``series`` linearly interpolated at ``t_ns`` (NaN outside its time span)."""
-    values = series.values
-    out = np.empty((len(t_ns), values.shape[1]))
+    """``series`` linearly interpolated at ``t_ns`` (NaN outside its time span); the stamps are
+    taken relative to the series' first, so that nanoseconds keep their precision as floats."""
     t_rel = (series.t_ns - series.t_ns[0]).astype(float)
     q = (np.asarray(t_ns) - series.t_ns[0]).astype(float)
-    for j in range(values.shape[1]):
-        out[:, j] = np.interp(q, t_rel, values[:, j], left=np.nan, right=np.nan)
-    return out
+    return evaluation.interpolate(t_rel, series.values, q)
 
 
 def state_errors(estimate: Series, reference: Series) -> tuple[np.ndarray, np.ndarray]:

@@ -32,6 +32,8 @@ setup(
         'rosbags>=0.10',
         # MCAP records and CRCs: the writer of the package's bags, the reader's record decoding
         'mcap>=1.6',
+        # one BLAS thread in the package's processes (cloe_ros/threads.py)
+        'threadpoolctl>=3.5',
     ],
     extras_require={
         # `cloe live`: the Foxglove WebSocket server (a 19 MB wheel, 53 MB installed)

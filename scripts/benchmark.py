@@ -29,6 +29,7 @@ from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion  # noqa: 
 from cloe_ros.core.samples import OdometrySample, PoseSample  # noqa: E402
 from cloe_ros.io import messages  # noqa: E402
 from cloe_ros.io.outputs import OutputConfig, OutputEncoder  # noqa: E402
+from cloe_ros.threads import limit_blas_threads  # noqa: E402
 
 
 def best_of(fn, repeat: int = 3) -> float:
@@ -116,6 +117,7 @@ def infer(bag: Path) -> tuple[float, float]:
 
 
 def main() -> int:
+    limit_blas_threads()  # as the nodes and `cloe` do (cloe_ros/threads.py)
     print(f'machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, '
           f'Python {platform.python_version()}, numpy {np.__version__}\n')  # fmt: skip
     print('| what | time |')

@@ -4,9 +4,10 @@
 
 For each algorithm and each N: one estimator holding N vehicles (``make_estimator`` with (N, 12)
 states), stepped ``--steps`` times on a circle flown by every vehicle with its own phase; the
-median over 5 repeats of the process CPU time per step, divided by N. This is the estimator's
-cost only: the engine around it (input checks, the grid, anticipation, one per vehicle) and
-rclpy are not in it; ``scripts/swarm_benchmark.py`` measures the whole node.
+median over 5 repeats of the process CPU time per step, divided by N (with one BLAS thread, as in
+the nodes: cloe_ros/threads.py). This is the estimator's cost only: the engine around it (input
+checks, the grid, anticipation, one per vehicle) and rclpy are not in it;
+``scripts/swarm_benchmark.py`` measures the whole node.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from cloe_ros.core.algorithms import ALGORITHMS, make_estimator
 from cloe_ros.core.estimator import EstimatorConfig
+from cloe_ros.threads import limit_blas_threads
 
 
 def circle(n: int, steps: int, h: float) -> tuple[np.ndarray, np.ndarray]:
@@ -51,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--steps', type=int, default=2000)
     parser.add_argument('--algorithms', nargs='+', default=list(ALGORITHMS), choices=ALGORITHMS)
     args = parser.parse_args(argv)
+    limit_blas_threads()  # as the nodes do: the CPU time is then this thread's work alone
     print('| algorithm | ' + ' | '.join(f'N = {n}: µs per vehicle-step' for n in args.vehicles)
           + ' |')  # fmt: skip
     print('|---|' + '---|' * len(args.vehicles))

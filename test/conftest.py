@@ -22,6 +22,7 @@ import pytest
 from ros_helpers import release_test_domains
 
 from cloe_ros.cli.processes import reserve_domain_id
+from cloe_ros.threads import limit_blas_threads
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 #: This process's domain: the xdist controller's, or one worker's (``PYTEST_XDIST_WORKER``).
@@ -29,6 +30,9 @@ DOMAIN_ID = reserve_domain_id()
 os.environ['ROS_DOMAIN_ID'] = str(DOMAIN_ID)
 os.environ.setdefault('ROS_LOG_DIR', os.path.join(tempfile.gettempdir(), 'cloe_ros_test_logs'))
 os.environ.setdefault('MPLBACKEND', 'Agg')
+# one BLAS thread, as in the package's processes (their children inherit it): the parallel
+# workers' spinning BLAS threads would otherwise take each other's cores
+limit_blas_threads()
 
 
 def pytest_report_header(config) -> str:

@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from cloe_ros import __version__
 from cloe_ros.cli.commands import COMMANDS
 from cloe_ros.errors import CloeError
+from cloe_ros.threads import limit_blas_threads
 
 #: Exit status of an error the command reports as ``ERROR: ...``.
 EXIT_ERROR = 1
@@ -70,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # exits with EXIT_USAGE (2) on a bad command line
+    limit_blas_threads()
     try:
         status = int(args.run(args) or 0)
         sys.stdout.flush()  # what is still buffered goes now, while a closed pipe can be handled

@@ -104,9 +104,12 @@ def opcode_name(op: int) -> str:
         return f'opcode 0x{op:02x}'
 
 
+_FIRST_OPCODE, _LAST_OPCODE = min(Opcode), max(Opcode)
+
+
 def known_opcode(op: int) -> bool:
     """An opcode the specification defines (0x01-0x0F), or a user extension (0x80-0xFF)."""
-    return min(Opcode) <= op <= max(Opcode) or op >= 0x80
+    return _FIRST_OPCODE <= op <= _LAST_OPCODE or op >= 0x80
 
 
 class _Bounded(ReadDataStream):

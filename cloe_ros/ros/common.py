@@ -32,6 +32,7 @@ from rclpy.qos import (
 )
 
 from cloe_ros.ros.errors import ParameterError, StartupError
+from cloe_ros.threads import limit_blas_threads
 
 NS = 1_000_000_000
 
@@ -47,6 +48,7 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
     argument) is reported in one ``ERROR:`` line, as a bad parameter is, instead of rcl's
     traceback.
     """
+    limit_blas_threads()
     argv = list(args if args is not None else sys.argv)
     try:
         check_params_files(argv)

@@ -33,6 +33,10 @@ def main() -> int:
     args = parser.parse_args()
     import numpy as np
 
+    from cloe_ros.threads import limit_blas_threads
+
+    limit_blas_threads()  # as the package's processes and the test workers run
+
     worst = 0.0
     for bag in args.bags or bags():
         got = golden_outputs(bag)

@@ -236,9 +236,10 @@ def harmonic_fit(
     ``joint`` (a circle or an ellipse in x and y). Returns (K, C)."""
     wt = np.outer(omegas, t)  # (W, T)
     basis = np.stack([np.ones_like(wt), np.cos(wt), np.sin(wt)], axis=-1)  # (W, T, 3)
-    gram = np.einsum('wti,wtj->wij', basis, basis) + 1e-9 * np.eye(3)
-    coef = np.linalg.solve(gram, np.einsum('wti,tc->wic', basis, y))  # (W, 3, C)
-    resid = np.sum((np.einsum('wti,wic->wtc', basis, coef) - y[None]) ** 2, axis=1)  # (W, C)
+    basis_t = np.swapaxes(basis, 1, 2)  # (W, 3, T); matmul (BLAS), 3x einsum's speed here
+    gram = basis_t @ basis + 1e-9 * np.eye(3)
+    coef = np.linalg.solve(gram, basis_t @ y)  # (W, 3, C)
+    resid = np.sum((basis @ coef - y[None]) ** 2, axis=1)  # (W, C)
     if joint:
         best = np.full(y.shape[1], int(np.argmin(resid.sum(axis=1))))
     else:
@@ -323,6 +324,17 @@ def simplex_weights(s: np.ndarray, allowed: np.ndarray, shrink: float = 0.1) -> 
     return np.where(active, np.clip(w, 0.0, None), 0.0)
 
 
+def _occurrence(values: np.ndarray) -> np.ndarray:
+    """For each entry of the integer array ``values``, how many equal ones come before it."""
+    order = np.argsort(values, kind='stable')
+    sorted_ = values[order]
+    group_start = np.flatnonzero(np.r_[True, sorted_[1:] != sorted_[:-1]])
+    counts = np.diff(np.r_[group_start, len(values)])
+    out = np.empty(len(values), dtype=np.intp)
+    out[order] = np.arange(len(values)) - np.repeat(group_start, counts)
+    return out
+
+
 class Ensemble:
     """Per-horizon weights of M candidate predictors from their scored past predictions.
 
@@ -380,24 +392,27 @@ class Ensemble:
         times = issued[:, None] + self.offsets[None, :]  # (P, K)
         due = (times > since + 1e-9) & (times <= now + 1e-9)
         self._pending_t[live[times[:, -1] <= now + 1e-9]] = np.nan  # every pose is due: done
-        rows = np.flatnonzero(due.any(axis=1))
+        if not due.any():
+            return out
+        # the truth of every due pose in one call, and every scored pose's errors in one
+        rows, ks = np.nonzero(due)  # (the order of times[due]: by prediction, then horizon)
+        actual = truth(times[due])  # (n, D)
+        ok = np.isfinite(actual).all(axis=1)
+        rows, ks, actual = rows[ok], ks[ok], actual[ok]
         if not len(rows):
             return out
-        # the truth of every due pose in one call, then each prediction in issue order
-        actual_all = truth(times[due])  # (n, D)
-        first = np.concatenate([[0], np.cumsum(due.sum(axis=1))])
-        for r in rows:
-            i, t0 = live[r], issued[r]
-            ks = np.flatnonzero(due[r])
-            actual = actual_all[first[r] : first[r + 1]]  # (k, D)
-            ok = np.isfinite(actual).all(axis=1)
-            if not ok.any():
-                continue
-            ks, actual = ks[ok], actual[ok]
-            err = self._pending[i][:, ks] - actual[None]  # (M, k, D)
-            cross = np.einsum('mkd,nkd->kmn', err, err)
-            self._accumulate(ks, cross)
-            out.append((t0, ks, np.einsum('mkd,mkd->mk', err, err)))
+        err = self._pending[live[rows], :, ks] - actual[:, None, :]  # (n, M, D)
+        cross = np.einsum('pmd,pnd->pmn', err, err)
+        squared = np.einsum('pmd,pmd->pm', err, err)
+        # each horizon's scores weighed in in the predictions' order: the first score of every
+        # horizon at once, then the second (a horizon scored twice in one call), ...
+        repeat = _occurrence(ks)
+        for j in range(int(repeat.max()) + 1):
+            take = repeat == j
+            self._accumulate(ks[take], cross[take])
+        starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+        for a, b in zip(starts, [*starts[1:], len(rows)]):
+            out.append((issued[rows[a]], ks[a:b], squared[a:b].T))
         return out
 
     def _accumulate(self, ks: np.ndarray, cross: np.ndarray) -> None:

@@ -94,6 +94,32 @@ def test_unscored_horizons_take_the_growth_of_the_scored_ones():
     assert w[0, 0] > 0.5 and w[3, 1] > 0.8, w
 
 
+def test_scores_of_one_horizon_due_together_are_weighed_in_in_order():
+    """Scored in one call over a long span (a horizon due for several predictions at once), the
+    ensemble ends where scoring after every prediction ends, and returns the same scores."""
+    offsets = np.array([0.2, 0.6, 1.0])
+    rng = np.random.default_rng(4)
+    paths = rng.normal(size=(12, 2, 3, 2))
+    truth = lambda times: np.column_stack([np.sin(times), np.cos(times)])  # noqa: E731
+    step, once = (Ensemble(('a', 'b'), offsets, 2, score_time=1.0, period=0.2, max_pending=40)
+                  for _ in range(2))  # fmt: skip
+    by_step = []
+    for i, path in enumerate(paths):
+        for ens in (step, once):
+            ens.add(0.2 * i, path)
+        by_step += step.score(0.2 * i - 0.2, 0.2 * i, truth)
+    at_once = once.score(-0.2, 0.2 * (len(paths) - 1), truth)
+    np.testing.assert_allclose(once.cross, step.cross, rtol=1e-14, atol=0)
+    assert once.scored.tolist() == step.scored.tolist() == [True] * 3
+    # the same (prediction, horizon) scores, whichever call gave them
+    flat = lambda out: sorted((round(t0, 9), int(k), tuple(sq[:, j])) for t0, ks, sq in out  # noqa: E731
+                              for j, k in enumerate(ks))  # fmt: skip
+    assert len(flat(at_once)) == len(flat(by_step)) == sum(int(np.sum(0.2 * i + offsets <= 2.2
+                                                                      + 1e-9)) for i in range(12))
+    np.testing.assert_allclose([s[2] for s in flat(at_once)], [s[2] for s in flat(by_step)],
+                               rtol=1e-14)  # fmt: skip
+
+
 @pytest.mark.parametrize('scale', [0.01, 1.0])
 def test_the_radius_covers_95_percent_of_errors_of_any_scale(scale):
     offsets = np.array([0.5, 1.0])

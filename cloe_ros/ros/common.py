@@ -22,6 +22,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (
@@ -37,8 +38,16 @@ from cloe_ros.threads import limit_blas_threads
 NS = 1_000_000_000
 
 
-def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+def run_node(
+    node_factory: Callable[[], Node], args: Sequence[str] | None = None, events: bool = False
+) -> int:
     """Start rclpy, spin the node until Ctrl-C / SIGTERM / shutdown, then clean up.
+
+    ``events``: spin rclpy's EventsExecutor (``rclpy.experimental``) instead of the
+    SingleThreadedExecutor, whose every wait rebuilds a wait set of all the node's subscriptions,
+    timers and services in Python: with a hundred vehicles' subscriptions that costs more than the
+    messages. The EventsExecutor's ``spin()`` does not return when a signal shuts rclpy down
+    (rclpy 7.1), its ``spin_once`` does: it is called in a loop.
 
     SIGINT and SIGTERM reach rclpy as ``ExternalShutdownException``; ``destroy_node`` runs in
     ``finally`` so nodes that hold files (the recorder) close them completely. A node can end the
@@ -63,9 +72,13 @@ def run_node(node_factory: Callable[[], Node], args: Sequence[str] | None = None
     status = 0
     try:
         node = node_factory()
-        executor = SingleThreadedExecutor()
+        executor = EventsExecutor() if events else SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        if events:
+            while rclpy.ok():
+                executor.spin_once(timeout_sec=0.5)
+        else:
+            executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:

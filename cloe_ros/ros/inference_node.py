@@ -587,7 +587,7 @@ class InferenceNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(InferenceNode, args)
+    return run_node(InferenceNode, args, events=True)
 
 
 if __name__ == '__main__':

@@ -4,7 +4,9 @@
 
 Measures, on this machine: one estimator step (core, batched over N vehicles), one engine step
 (validation + step + output encoding, as the node does it), the CDR decode/encode of the
-contract's messages, and `cloe infer` on a recorded flight (ms per flight-second).
+contract's messages, and `cloe infer` on the sample bags and on the corpus of real flights, when
+it is there (the folder ``CLOE_FLIGHTS`` names, else ``shared/data/flights`` beside the checkout,
+as for the tests: test/corpus.py), in ms per flight-second.
 """
 
 from __future__ import annotations
@@ -133,7 +135,7 @@ def main() -> int:
               f'step, encode outputs) | {us:.0f} us |')  # fmt: skip
     for name, sec in codec().items():
         print(f'| {name} (lean CDR, io/cdr.py) | {1e6 * sec:.1f} us |')
-    flights = Path('/work/shared/data/flights')
+    flights = Path(os.environ.get('CLOE_FLIGHTS', REPO.parent / 'shared' / 'data' / 'flights'))
     bags = [REPO / 'bags' / 'position', REPO / 'bags' / 'trajectory']
     bags += sorted(flights.glob('nanobench_*')) if flights.exists() else []
     for bag in bags:

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cloe_ros.core.estimator import EstimatorConfig, StepBuffers, observer_drift
+from cloe_ros.core.estimator import EstimatorConfig, StepBuffers, observer_drift, observer_update
 from cloe_ros.core.identifier import ROW_CHANNEL, IvIdentifier
 from cloe_ros.core.model import (
     COUPLED_BLOCKS,
@@ -128,7 +128,7 @@ class CloeIvEstimator:
             msg = f'cloe_iv runs at a fixed step of {self.h} s, got {h}'
             raise ValueError(msg)
         cfg, buf = self.config, self.buffers
-        e, tmp, tmp2 = buf.e, buf.tmp, buf.tmp2
+        e, tmp = buf.e, buf.tmp
         np.subtract(zeta, self.zeta_hat, out=e)
         theta_m, coupling_m = self.model
         f = observer_drift(self.zeta_hat, theta_m, r, buf)
@@ -138,19 +138,7 @@ class CloeIvEstimator:
         # what the model misses on the rows it does not know (extended state, see the module doc)
         f[:, _UNKNOWN] += self.model_error
         self.model_error += h * (cfg.gamma_d * e[:, _UNKNOWN] - cfg.l_leak * self.model_error)
-        np.abs(e, out=tmp)
-        np.power(tmp, self.exponents, out=tmp)
-        np.sign(e, out=tmp2)
-        tmp *= tmp2
-        tmp *= self.lambda_
-        f += tmp
-        np.multiply(self.gain_l, zeta, out=tmp)
-        tmp += f
-        tmp *= h
-        self.zeta_hat += tmp
-        np.multiply(self.gain_l, h, out=tmp2)
-        tmp2 += 1.0
-        self.zeta_hat /= tmp2
+        observer_update(self.zeta_hat, f, self.gain_l, zeta, h, self.lambda_, self.exponents, buf)
         # bounded adaptive gain: l' = gamma e^2 - sigma (l - l_min), clipped to [l_min, l_max]
         np.square(e, out=tmp)
         tmp *= cfg.gamma_l

@@ -164,6 +164,37 @@ def observer_drift(
     return buf.f
 
 
+def observer_update(
+    zeta_hat: np.ndarray,
+    f: np.ndarray,
+    gain_l: np.ndarray,
+    zeta: np.ndarray,
+    h: float,
+    lambda_: np.ndarray | None,
+    exponents: np.ndarray,
+    buf: StepBuffers,
+) -> None:
+    """The observer's step of ``h`` s, in place, shared by CLOE, CLOE-SM and cloe_iv: the
+    sliding-mode term ``lambda_ |e|^exponents sign(e)`` (``e = buf.e``; None: no term) added to
+    the drift ``f``, then the semi-implicit update
+    ``zeta_hat+ = (zeta_hat + h (f + L zeta)) / (1 + h L)``."""
+    e, tmp, tmp2 = buf.e, buf.tmp, buf.tmp2
+    if lambda_ is not None:
+        np.abs(e, out=tmp)
+        np.power(tmp, exponents, out=tmp)
+        np.sign(e, out=tmp2)
+        tmp *= tmp2
+        tmp *= lambda_
+        f += tmp
+    np.multiply(gain_l, zeta, out=tmp)
+    tmp += f
+    tmp *= h
+    zeta_hat += tmp
+    np.multiply(gain_l, h, out=tmp2)
+    tmp2 += 1.0
+    zeta_hat /= tmp2
+
+
 def cloe_step(
     zeta_hat: np.ndarray,
     theta_hat: np.ndarray,
@@ -198,24 +229,10 @@ def cloe_step(
             reference is not tracked); None: all adapt.
 
     """
-    e, tmp, tmp2 = buf.e, buf.tmp, buf.tmp2
+    e, tmp = buf.e, buf.tmp
     np.subtract(zeta, zeta_hat, out=e)
     f = observer_drift(zeta_hat, theta_hat, r, buf)
-    if use_sm:
-        np.abs(e, out=tmp)
-        np.power(tmp, exponents, out=tmp)
-        np.sign(e, out=tmp2)
-        tmp *= tmp2
-        tmp *= lambda_
-        f += tmp
-    # Semi-implicit observer step: zeta_hat+ = (zeta_hat + h (f + L zeta)) / (1 + h L).
-    np.multiply(gain_l, zeta, out=tmp)
-    tmp += f
-    tmp *= h
-    zeta_hat += tmp
-    np.multiply(gain_l, h, out=tmp2)
-    tmp2 += 1.0
-    zeta_hat /= tmp2
+    observer_update(zeta_hat, f, gain_l, zeta, h, lambda_ if use_sm else None, exponents, buf)
     # Identifier: Theta_b' = Gamma e_last [zeta_hat_b ; r_b]  (regressor before the update).
     np.take(e, PARAM_ROW, axis=1, out=buf.grad, mode='clip')
     buf.grad *= buf.phi

@@ -308,6 +308,48 @@ def block_is_stable(
     return out
 
 
+@dataclass
+class _StepWork:
+    """Work arrays of :meth:`IvIdentifier.step` for N vehicles, allocated once: the step writes
+    its intermediate results into them (``x_aux`` and ``fx`` are swapped with the identifier's
+    own), so that it allocates no array the size of the statistics."""
+
+    x_aux: np.ndarray
+    n12: np.ndarray
+    u: np.ndarray
+    f: np.ndarray
+    d: np.ndarray
+    nc: np.ndarray
+    nc2: np.ndarray
+    nc3: np.ndarray
+    fx: np.ndarray
+    phi: np.ndarray
+    xi: np.ndarray
+    y: np.ndarray
+    rows: np.ndarray
+    residual: np.ndarray
+    nrw: np.ndarray
+    xp: np.ndarray
+    xx: np.ndarray
+    pp: np.ndarray
+    excited: np.ndarray
+    mu: np.ndarray
+
+    @classmethod
+    def allocate(cls, n: int) -> _StepWork:
+        rw, rww = (n, N_ROWS, WIDTH), (n, N_ROWS, WIDTH, WIDTH)
+        return cls(
+            x_aux=np.zeros((n, N_STATES)), n12=np.zeros((n, N_STATES)),
+            u=np.zeros((n, N_CHANNELS)), f=np.zeros((n, N_CHANNELS + 1)),
+            d=np.zeros((n, N_CHANNELS)), nc=np.zeros((n, N_CHANNELS)),
+            nc2=np.zeros((n, N_CHANNELS)), nc3=np.zeros((n, N_CHANNELS, 3)),
+            fx=np.zeros((n, N_CHANNELS, 3)), phi=np.zeros(rw), xi=np.zeros(rw),
+            y=np.zeros((n, N_ROWS)), rows=np.zeros((n, N_ROWS)), residual=np.zeros((n, N_ROWS)),
+            nrw=np.zeros(rw), xp=np.zeros(rww), xx=np.zeros(rww), pp=np.zeros(rww),
+            excited=np.zeros((n, N_ROWS), dtype=bool), mu=np.zeros((n, N_ROWS)),
+        )  # fmt: skip
+
+
 class IvIdentifier:
     """The recursive IV identifier for N vehicles (see the module docstring).
 
@@ -404,16 +446,18 @@ class IvIdentifier:
         self._hist_active = np.zeros((n, w), dtype=bool)
         self._hist_next = 0
         self._hist_count = 0
+        self._work = _StepWork.allocate(n)
 
     # ---------------------------------------------------------------- layout helpers
 
     @staticmethod
-    def _channels(zeta: np.ndarray, r: np.ndarray, aux: np.ndarray) -> np.ndarray:
-        n = zeta.shape[0]
-        u = np.empty((n, N_CHANNELS))
-        u[:, _ZETA:_REF] = zeta / STATE_SCALE
-        u[:, _REF:_AUX] = r / REFERENCE_SCALE
-        u[:, _AUX:_ZERO] = aux / STATE_SCALE
+    def _channels(
+        zeta: np.ndarray, r: np.ndarray, aux: np.ndarray, out: np.ndarray | None = None
+    ) -> np.ndarray:
+        u = np.empty((zeta.shape[0], N_CHANNELS)) if out is None else out
+        np.divide(zeta, STATE_SCALE, out=u[:, _ZETA:_REF])
+        np.divide(r, REFERENCE_SCALE, out=u[:, _REF:_AUX])
+        np.divide(aux, STATE_SCALE, out=u[:, _AUX:_ZERO])
         u[:, _ZERO] = 0.0
         return u
 
@@ -483,32 +527,51 @@ class IvIdentifier:
         self._hist_active[:, k] = True if active is None else active.all(axis=1)
         self._hist_next = (k + 1) % self._hist_z.shape[1]
         self._hist_count += 1
-        # auxiliary model: driven by the reference only
-        self.x_aux = np.einsum('nij,nj->ni', self._aux_ad, self.x_aux) + np.einsum(
-            'nij,nj->ni', self._aux_bd, r
-        )
+        # auxiliary model: driven by the reference only (into work arrays, then swapped in)
+        w = self._work
+        np.einsum('nij,nj->ni', self._aux_ad, self.x_aux, out=w.x_aux)
+        np.einsum('nij,nj->ni', self._aux_bd, r, out=w.n12)
+        w.x_aux += w.n12
+        self.x_aux, w.x_aux = w.x_aux, self.x_aux
         self._last_r[:] = r
-        u = self._channels(zeta, r, self.x_aux - self._aux_shift)
+        np.subtract(self.x_aux, self._aux_shift, out=w.n12)
+        u = self._channels(zeta, r, w.n12, out=w.u)
         x = self._fx
         self._t += h
-        f = np.empty((u.shape[0], N_CHANNELS + 1))
-        f[:, :N_CHANNELS] = x @ self._cf + self._df * u  # F{u}
+        f = w.f
+        np.matmul(x, self._cf, out=w.nc)
+        np.multiply(self._df, u, out=w.nc2)
+        np.add(w.nc, w.nc2, out=f[:, :N_CHANNELS])  # F{u}
         f[:, _DECAY] = np.exp(-cfg.highpass * self._t)
-        d = x @ self._cd + self._dd * u  # sF{u}  (N, C)
-        self._fx = x @ self._ad_t + u[..., None] * self._bd
+        d = w.d
+        np.matmul(x, self._cd, out=d)
+        np.multiply(self._dd, u, out=w.nc2)
+        d += w.nc2  # sF{u}  (N, C)
+        np.matmul(x, self._ad_t, out=w.fx)
+        np.multiply(u[..., None], self._bd, out=w.nc3)
+        w.fx += w.nc3
+        self._fx, w.fx = w.fx, self._fx
         if self._t < self._settle:
             return
-        phi = np.einsum('nc,rcw->nrw', f, PHI_MAP) * self._mask  # (N, rows, WIDTH)
-        xi = np.einsum('nc,rcw->nrw', f, XI_MAP) * self._mask
-        y = f @ Y_F_MAP.T + d @ Y_D_MAP.T  # (N, rows)
+        phi, xi, y = w.phi, w.xi, w.y
+        np.einsum('nc,rcw->nrw', f, PHI_MAP, out=phi)  # (N, rows, WIDTH)
+        phi *= self._mask
+        np.einsum('nc,rcw->nrw', f, XI_MAP, out=xi)
+        xi *= self._mask
+        np.matmul(f, Y_F_MAP.T, out=y)  # (N, rows)
+        np.matmul(d, Y_D_MAP.T, out=w.rows)
+        y += w.rows
 
         # short-window statistics (always forgetting) and the excitation gate
         if active is not None:
             gate = active.astype(float)
-            phi, xi, y = phi * gate[:, :, None], xi * gate[:, :, None], y * gate
-        xp = xi[..., :, None] * phi[..., None, :]
+            phi *= gate[:, :, None]
+            xi *= gate[:, :, None]
+            y *= gate
+        xp, xx = w.xp, w.xx
+        np.multiply(xi[..., :, None], phi[..., None, :], out=xp)
         xp *= h
-        xx = xi[..., :, None] * xi[..., None, :]
+        np.multiply(xi[..., :, None], xi[..., None, :], out=xx)
         xx *= h
         mu_e = self._mu_e
         self.cross_e *= mu_e
@@ -516,23 +579,35 @@ class IvIdentifier:
         self.gram_xi *= mu_e
         self.gram_xi += xx
         self.gram_phi *= mu_e
-        self.gram_phi += h * phi[..., :, None] * phi[..., None, :]
-        residual = y - np.einsum('npj,npj->np', self._rows, phi)
-        self.res2 = mu_e * self.res2 + h * residual**2
+        np.multiply(phi, h, out=w.nrw)
+        np.multiply(w.nrw[..., :, None], phi[..., None, :], out=w.pp)
+        self.gram_phi += w.pp
+        residual = w.residual
+        np.einsum('npj,npj->np', self._rows, phi, out=residual)
+        np.subtract(y, residual, out=residual)
+        self.res2 *= mu_e
+        np.square(residual, out=residual)
+        residual *= h
+        self.res2 += residual
         self.weight_e = mu_e * self.weight_e + h
         self._steps += 1
         if self._steps % self._excitation_every == 1 or self._excitation_every == 1:
             self._update_excitation()
-        excited = self.excitation >= cfg.excitation_threshold  # (N, 6)
+        excited = w.excited  # (N, 6)
+        np.greater_equal(self.excitation, cfg.excitation_threshold, out=excited)
         if active is not None:
             excited &= active
 
         # long-window normal equations, forgetting only while excited
-        mu = np.where(excited, self._mu, 1.0)
+        mu = w.mu
+        mu.fill(1.0)
+        np.copyto(mu, self._mu, where=excited)
         self.cross *= mu[..., None, None]
         self.cross += xp
         self.rhs *= mu[..., None]
-        self.rhs += h * xi * y[..., None]
+        np.multiply(xi, h, out=w.nrw)
+        w.nrw *= y[..., None]
+        self.rhs += w.nrw
         self.gram_xi_long *= mu[..., None, None]
         self.gram_xi_long += xx
         if self._steps % self._solve_every == 0 or self._solve_every == 1:

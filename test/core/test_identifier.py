@@ -455,3 +455,37 @@ def test_the_filters_tustin_step_is_scipys_to_the_bit():
         want = cont2discrete((a, b, c, d), h, method='bilinear')[:4]
         for got, expected in zip(tustin(a, b, c, d, h), want):
             np.testing.assert_array_equal(got, expected)
+
+
+def test_the_step_allocates_no_array_the_size_of_the_statistics():
+    """With 100 vehicles, a step (but the periodic solve and excitation measures) writes into
+    arrays allocated once: what it allocates stays below one of its (N, rows, 6, 6) statistics
+    (numpy's own iteration buffers are of a fixed size); the step before wrote into new ones."""
+    import tracemalloc
+
+    n, h = 100, 0.01
+    t = h * np.arange(400)[:, None] + np.linspace(0.0, 2 * np.pi, n, endpoint=False)[None]
+    zeta = np.zeros((400, n, 12))
+    zeta[..., 0], zeta[..., 4], zeta[..., 10] = np.cos(0.5 * t), np.sin(0.5 * t), 1.0
+    r = np.zeros((400, n, 4))
+    r[..., 0], r[..., 1], r[..., 3] = zeta[..., 0], zeta[..., 4], 1.0
+    est = CloeIvEstimator(EstimatorConfig(algorithm='cloe_iv'), zeta[0], r[0], h)
+    ident = est.identifier
+    for k in range(1, 300):
+        est.step(zeta[k], r[k], h)
+    assert ident._t > ident._settle  # (the statistics are updated from here on)
+    peaks = []
+    tracemalloc.start()
+    try:
+        for k in range(300, 400):
+            steps = ident._steps + 1
+            periodic = steps % ident._solve_every == 0 or steps % ident._excitation_every == 1
+            tracemalloc.reset_peak()
+            before = tracemalloc.get_traced_memory()[0]
+            ident.step(zeta[k], r[k])
+            if not periodic:
+                peaks.append(tracemalloc.get_traced_memory()[1] - before)
+    finally:
+        tracemalloc.stop()
+    assert len(peaks) > 50
+    assert max(peaks) < ident.cross.nbytes, (max(peaks), ident.cross.nbytes)

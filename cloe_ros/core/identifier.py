@@ -593,7 +593,7 @@ class IvIdentifier:
         self._steps += 1
         if self._steps % self._excitation_every == 1 or self._excitation_every == 1:
             self._update_excitation()
-        excited = w.excited  # (N, 6)
+        excited = w.excited  # (N, rows)
         np.greater_equal(self.excitation, cfg.excitation_threshold, out=excited)
         if active is not None:
             excited &= active

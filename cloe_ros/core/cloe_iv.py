@@ -35,6 +35,8 @@ fly at ground level.)
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from cloe_ros.core.estimator import EstimatorConfig, StepBuffers, observer_drift, observer_update
@@ -46,12 +48,18 @@ from cloe_ros.core.model import (
     UNKNOWN_ROWS,
     check_shape,
 )
+from cloe_ros.core.rows import Rows
 
 _COUPLED = [(b.states[1], b.states[2]) for b in COUPLED_BLOCKS]
 _UNKNOWN = list(UNKNOWN_ROWS)
 
 
-class CloeIvEstimator:
+def _shared(config: EstimatorConfig) -> EstimatorConfig:
+    """The settings vehicles in one estimator share (all but where each one starts)."""
+    return replace(config, theta_initial=None)
+
+
+class CloeIvEstimator(Rows):
     """CLOE-SM observer + IV identifier for N vehicles (same interface as ``CloeEstimator``).
 
     Args:
@@ -62,7 +70,12 @@ class CloeIvEstimator:
         h: Step, s (the identifier's filters are discretised for it).
         n_vehicles: Number of vehicles when ``zeta0`` is (12,).
 
+    Vehicles started apart (each its own ``theta_initial``) can share one estimator
+    (:mod:`cloe_ros.core.rows`) when the rest of their settings is the same.
     """
+
+    ROW_FIELDS = ('zeta_hat', 'gain_l', 'lambda_', 'exponents', 'flying', 'model_error')
+    ROW_PARTS = ('identifier',)
 
     def __init__(
         self,
@@ -90,9 +103,19 @@ class CloeIvEstimator:
         self.gain_l = np.full((n, N_STATES), max(float(config.l_initial), config.l_min))
         self.lambda_ = np.tile(np.asarray(config.sm_gains, dtype=float), (n, 1))
         self.exponents = np.tile(np.asarray(config.sm_exponents, dtype=float), (n, 1))
-        self.buffers = StepBuffers.allocate(n)
+        self._allocate_work(n)
         self.flying = np.ones(n, dtype=bool)
         self.model_error = np.zeros((n, len(_UNKNOWN)))
+
+    def shares_settings(self, other: Rows) -> bool:
+        return (
+            isinstance(other, CloeIvEstimator)
+            and other.h == self.h
+            and _shared(other.config) == _shared(self.config)
+        )
+
+    def _allocate_work(self, n: int) -> None:
+        self.buffers = StepBuffers.allocate(n)
 
     @property
     def theta_hat(self) -> np.ndarray:

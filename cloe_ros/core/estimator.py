@@ -41,6 +41,7 @@ from cloe_ros.core.model import (
     UNKNOWN_ROWS,
     check_shape,
 )
+from cloe_ros.core.rows import Rows
 from cloe_ros.errors import ConfigError
 from cloe_ros.settings import (  # noqa: F401 (ALGORITHMS and the SM_* tables: re-exported)
     ALGORITHMS,
@@ -248,7 +249,7 @@ def cloe_step(
     gain_l += tmp
 
 
-class CloeEstimator:
+class CloeEstimator(Rows):
     """CLOE / CLOE-SM for N vehicles; holds the state and steps without allocating.
 
     Args:
@@ -257,7 +258,12 @@ class CloeEstimator:
         zeta0: Initial estimate (N, 12) or (12,); usually the first measurement.
         n_vehicles: Number of vehicles when ``configs`` is a single config.
 
+    Estimators of the same algorithm can share one (:mod:`cloe_ros.core.rows`).
     """
+
+    ROW_FIELDS = ('zeta_hat', 'theta_hat', 'gain_l', 'gamma_theta', 'gamma_l', 'lambda_',
+                  'exponents')  # fmt: skip
+    ROW_TUPLES = ('configs',)
 
     def __init__(
         self,
@@ -287,6 +293,12 @@ class CloeEstimator:
         self.lambda_ = np.array([c.lambda_ for c in configs])
         self.exponents = np.array([c.sm_exponents for c in configs], dtype=float)
         self.use_sm = bool(np.any(self.lambda_))
+        self._allocate_work(n)
+
+    def shares_settings(self, other: Rows) -> bool:
+        return isinstance(other, CloeEstimator) and other.use_sm == self.use_sm
+
+    def _allocate_work(self, n: int) -> None:
         self.buffers = StepBuffers.allocate(n)
 
     @property

@@ -58,6 +58,7 @@ from cloe_ros.core.model import (
     discretise,
     system_matrices,
 )
+from cloe_ros.core.rows import Rows
 from cloe_ros.errors import ConfigError
 from cloe_ros.settings import check_fields, default
 
@@ -350,7 +351,7 @@ class _StepWork:
         )  # fmt: skip
 
 
-class IvIdentifier:
+class IvIdentifier(Rows):
     """The recursive IV identifier for N vehicles (see the module docstring).
 
     Args:
@@ -408,7 +409,9 @@ class IvIdentifier:
         self.model_coupling = self.coupling.copy()
         self.model_kind = np.full((n, len(BLOCKS)), 'prior')  # per block: prior|reduced|full
         self._set_aux(np.ones(n, dtype=bool))
-        self._since_aux = 0.0
+        # every vehicle keeps its own clocks, so that vehicles started at different times can
+        # share one identifier (cloe_ros.core.rows)
+        self._since_aux = np.zeros(n)
         # normal equations and excitation statistics per row (normalised coordinates)
         shape = (n, N_ROWS, WIDTH, WIDTH)
         self.cross = np.zeros(shape)  # C = int xi phi^T (long window, gated)
@@ -418,34 +421,54 @@ class IvIdentifier:
         self.gram_xi = np.zeros(shape)
         self.gram_phi = np.zeros(shape)
         self.res2 = np.zeros((n, N_ROWS))  # residual power (short window)
-        self.weight_e = 0.0  # integral of the short-window weight (for the residual mean)
+        self.weight_e = np.zeros(n)  # integral of the short-window weight (residual mean)
         self.excitation = np.zeros((n, N_ROWS))
         self.uncertainty = np.full((n, N_ROWS), np.inf)
         self.status = np.zeros((n, N_ROWS), dtype=np.int8)
         self._mu = float(np.exp(-self.h / config.window))
         self._mu_e = float(np.exp(-self.h / config.excitation_window))
-        self._steps = 0
+        self._steps = np.zeros(n, dtype=np.int64)  # steps with statistics (after the settling)
         self._mask = np.zeros((N_ROWS, WIDTH), dtype=bool)
         for p in range(N_ROWS):
             self._mask[p, : ROW_SIZE[p]] = True
         self._mask[:, WIDTH - 1] = True
         if not config.estimate_coupling:
             self._mask[list(COUPLING_ROWS)] = False
-        self._t = 0.0  # time since the start
+        self._t = np.zeros(n)  # time since the start
         # the estimate is solved at 20 Hz, the excitation measured at 4 Hz (both cheap enough)
         self._solve_every = max(1, round(0.05 / self.h))
         self._excitation_every = max(1, round(0.25 / self.h))
         self._settle = 5.0 / config.bandwidth  # the fast filter modes are gone after this
-        self._prior_norm = self._normalised(self.theta_prior, self.coupling_prior, self.loop_prior)
-        self._rows = np.tile(self._prior_norm, (n, 1, 1))  # last solution (normalised)
+        prior_norm = self._normalised(self.theta_prior, self.coupling_prior, self.loop_prior)
+        self._prior_norm = np.tile(prior_norm, (n, 1, 1))  # per vehicle (priors may differ)
+        self._rows = self._prior_norm.copy()  # last solution (normalised)
         self._rows_slow = self._rows.copy()  # its low-pass (DRIFT_TIME), see _update_excitation
         # the last VALIDATION_WINDOW of measurements and references (see _validate)
         w = max(2, round(VALIDATION_WINDOW / self.h))
         self._hist_z = np.zeros((n, w, N_STATES))
         self._hist_r = np.zeros((n, w, N_REFERENCES))
         self._hist_active = np.zeros((n, w), dtype=bool)
-        self._hist_next = 0
-        self._hist_count = 0
+        self._hist_next = np.zeros(n, dtype=np.intp)
+        self._hist_count = np.zeros(n, dtype=np.int64)
+        self._allocate_work(n)
+
+    # ------------------------------------------------------------ vehicles as rows
+
+    #: The attributes that hold one entry per vehicle (leading axis N); everything else is
+    #: shared: the settings, the step and the filters built from them.
+    ROW_FIELDS = (
+        'theta', 'coupling', 'loops', '_fx', 'x_aux', '_aux_shift', '_last_r', '_aux_ad',
+        '_aux_bd', 'aux_theta', 'aux_coupling', 'model_theta', 'model_coupling', 'model_kind',
+        '_since_aux', 'cross', 'rhs', 'gram_xi_long', 'cross_e', 'gram_xi', 'gram_phi', 'res2',
+        'weight_e', 'excitation', 'uncertainty', 'status', '_steps', '_t', '_prior_norm',
+        '_rows', '_rows_slow', '_hist_z', '_hist_r', '_hist_active', '_hist_next',
+        '_hist_count',
+    )  # fmt: skip
+
+    def shares_settings(self, other: Rows) -> bool:
+        return isinstance(other, IvIdentifier) and (other.config, other.h) == (self.config, self.h)
+
+    def _allocate_work(self, n: int) -> None:
         self._work = _StepWork.allocate(n)
 
     # ---------------------------------------------------------------- layout helpers
@@ -521,11 +544,12 @@ class IvIdentifier:
                 active = np.broadcast_to(active[:, None], (active.shape[0], N_ROWS))
             if active.all():
                 active = None
-        k = self._hist_next
-        self._hist_z[:, k] = zeta
-        self._hist_r[:, k] = r
-        self._hist_active[:, k] = True if active is None else active.all(axis=1)
-        self._hist_next = (k + 1) % self._hist_z.shape[1]
+        k, every = self._hist_next, np.arange(len(zeta))
+        self._hist_z[every, k] = zeta
+        self._hist_r[every, k] = r
+        self._hist_active[every, k] = True if active is None else active.all(axis=1)
+        k += 1
+        k %= self._hist_z.shape[1]
         self._hist_count += 1
         # auxiliary model: driven by the reference only (into work arrays, then swapped in)
         w = self._work
@@ -551,8 +575,12 @@ class IvIdentifier:
         np.multiply(u[..., None], self._bd, out=w.nc3)
         w.fx += w.nc3
         self._fx, w.fx = w.fx, self._fx
-        if self._t < self._settle:
+        # the statistics start once the filters' fast modes are gone; in a batch whose vehicles
+        # started at different times, those still settling take part with no weight
+        settled = self._t >= self._settle
+        if not settled.any():
             return
+        waiting = None if settled.all() else settled.astype(float)
         phi, xi, y = w.phi, w.xi, w.y
         np.einsum('nc,rcw->nrw', f, PHI_MAP, out=phi)  # (N, rows, WIDTH)
         phi *= self._mask
@@ -568,35 +596,52 @@ class IvIdentifier:
             phi *= gate[:, :, None]
             xi *= gate[:, :, None]
             y *= gate
+        mu_e = self._mu_e
+        if waiting is not None:  # (nothing added, nothing forgotten, no clock advanced)
+            phi *= waiting[:, None, None]
+            xi *= waiting[:, None, None]
+            y *= waiting[:, None]
+            mu_e = np.where(settled, mu_e, 1.0)
+        mu_e4, mu_e2 = (mu_e, mu_e) if waiting is None else (mu_e[:, None, None, None],
+                                                             mu_e[:, None])  # fmt: skip
         xp, xx = w.xp, w.xx
         np.multiply(xi[..., :, None], phi[..., None, :], out=xp)
         xp *= h
         np.multiply(xi[..., :, None], xi[..., None, :], out=xx)
         xx *= h
-        mu_e = self._mu_e
-        self.cross_e *= mu_e
+        self.cross_e *= mu_e4
         self.cross_e += xp
-        self.gram_xi *= mu_e
+        self.gram_xi *= mu_e4
         self.gram_xi += xx
-        self.gram_phi *= mu_e
+        self.gram_phi *= mu_e4
         np.multiply(phi, h, out=w.nrw)
         np.multiply(w.nrw[..., :, None], phi[..., None, :], out=w.pp)
         self.gram_phi += w.pp
         residual = w.residual
         np.einsum('npj,npj->np', self._rows, phi, out=residual)
         np.subtract(y, residual, out=residual)
-        self.res2 *= mu_e
+        self.res2 *= mu_e2
         np.square(residual, out=residual)
         residual *= h
         self.res2 += residual
-        self.weight_e = mu_e * self.weight_e + h
-        self._steps += 1
-        if self._steps % self._excitation_every == 1 or self._excitation_every == 1:
-            self._update_excitation()
+        self.weight_e *= mu_e
+        if waiting is None:
+            self.weight_e += h
+            self._steps += 1
+        else:
+            self.weight_e += h * waiting
+            self._steps += settled
+        due = (self._steps % self._excitation_every == 1) | (self._excitation_every == 1)
+        if waiting is not None:
+            due &= settled
+        if due.any():
+            self._update_excitation(None if due.all() else due)
         excited = w.excited  # (N, rows)
         np.greater_equal(self.excitation, cfg.excitation_threshold, out=excited)
         if active is not None:
             excited &= active
+        if waiting is not None:
+            excited &= settled[:, None]
 
         # long-window normal equations, forgetting only while excited
         mu = w.mu
@@ -610,16 +655,24 @@ class IvIdentifier:
         self.rhs += w.nrw
         self.gram_xi_long *= mu[..., None, None]
         self.gram_xi_long += xx
-        if self._steps % self._solve_every == 0 or self._solve_every == 1:
-            self._solve()
+        due = (self._steps % self._solve_every == 0) | (self._solve_every == 1)
+        if waiting is not None:
+            due &= settled
+        if due.any():
+            self._solve(None if due.all() else due)
 
-        self._since_aux += h
-        if self._since_aux >= cfg.aux_period - 1e-9:
-            self._since_aux = 0.0
-            self._update_model()
+        if waiting is None:
+            self._since_aux += h
+        else:
+            self._since_aux[settled] += h
+        due = self._since_aux >= cfg.aux_period - 1e-9
+        if due.any():
+            self._since_aux[due] = 0.0
+            self._update_model(None if due.all() else due)
 
-    def _update_model(self) -> None:
-        """Refresh the auxiliary model and the usable model (every ``aux_period``).
+    def _update_model(self, which: np.ndarray | None = None) -> None:
+        """Refresh the auxiliary model and the usable model (every ``aux_period``) of the
+        vehicles ``which`` (a mask (N,); None: all).
 
         The auxiliary model (the instruments' generator) takes every block estimate that is
         stable, while the block's reference moves: it only has to correlate with the regressors,
@@ -636,9 +689,11 @@ class IvIdentifier:
         """
         cfg = self.config
         n = self.theta.shape[0]
-        usable = self.status >= CONVERGING
+        which = np.ones(n, dtype=bool) if which is None else which
+        usable = (self.status >= CONVERGING) & which[:, None]
         moving = self.reference_rms() > QUIET
         stable = block_is_stable(self.theta, self.coupling, margin=0.05)
+        stable &= which[:, None]
         before = self._aux_equilibrium() if np.any(stable) else None
         for j, sl in enumerate(BLOCK_SLICES):
             ok = stable[:, j] & moving[:, j]
@@ -664,7 +719,7 @@ class IvIdentifier:
         # a reduced loop excited but not (yet) usable by its uncertainty: taken if it predicts
         # the recent past clearly better than the model in use (see _validate)
         for j, sl in enumerate(BLOCK_SLICES[: len(LOOP_ROWS)]):
-            excited = self.excitation[:, LOOP_ROWS[j]] >= cfg.excitation_threshold
+            excited = (self.excitation[:, LOOP_ROWS[j]] >= cfg.excitation_threshold) & which
             vs = np.flatnonzero(~use_full[:, j] & ~use_reduced[:, j] & excited)
             if not len(vs):
                 continue
@@ -684,7 +739,7 @@ class IvIdentifier:
         self.model_kind = np.where(ok & use_full, 'full', np.where(ok, 'reduced',
                                                                     self.model_kind))  # fmt: skip
         if before is not None:
-            self._set_aux(np.ones(n, dtype=bool), before)
+            self._set_aux(which, before)
 
     def _validate(
         self, vs: np.ndarray, j: int, block_theta: np.ndarray, coupling: np.ndarray
@@ -696,7 +751,8 @@ class IvIdentifier:
         enough data, the vehicle was not active all along (landed), or the model is unstable."""
         w = self._hist_z.shape[1]
         out = np.full(len(vs), np.inf)
-        if self._hist_count < w:
+        full = self._hist_count[vs] >= w
+        if not np.any(full):
             return out
         block = BLOCKS[j]
         idx = list(block.states)
@@ -704,16 +760,16 @@ class IvIdentifier:
         theta[:, BLOCK_SLICES[j]] = block_theta
         c = self.model_coupling[vs].copy()
         c[:, j] = coupling
-        ok = self._hist_active[vs].all(axis=1) & block_is_stable(theta, c)[:, j]
+        ok = full & self._hist_active[vs].all(axis=1) & block_is_stable(theta, c)[:, j]
         if not np.any(ok):
             return out
         # (the blocks are decoupled: the block of the full discretisation is the block's own)
         ad, bd = discretise(theta[ok], c[ok], self.h)
         ad_t = np.swapaxes(ad[:, idx][:, :, idx], 1, 2)
         bd = bd[:, None, idx, block.reference]
-        order = (self._hist_next + np.arange(w)) % w  # oldest first
-        z = self._hist_z[vs[ok]][:, order][:, :, idx]  # (V, w, n)
-        r = self._hist_r[vs[ok]][:, order, block.reference]  # (V, w)
+        order = (self._hist_next[vs[ok], None] + np.arange(w)) % w  # oldest first (V, w)
+        z = np.take_along_axis(self._hist_z[vs[ok]], order[..., None], axis=1)[:, :, idx]
+        r = np.take_along_axis(self._hist_r[vs[ok], :, block.reference], order, axis=1)
         steps = round(VALIDATION_HORIZON / self.h)
         starts = np.arange(0, w - steps, max(1, round(0.5 / self.h)))
         x = z[:, starts]  # (V, S, n)
@@ -728,33 +784,39 @@ class IvIdentifier:
         """RMS of each block's filtered reference over the short window (N, 4), normalised."""
         idx = ROW_SIZE[: len(BLOCKS)] - 1  # the reference is the last entry of a block's row
         power = self.gram_xi[:, np.arange(len(BLOCKS)), idx, idx]
-        return np.sqrt(np.maximum(power, 0.0) / max(self.weight_e, 1e-12))
+        return np.sqrt(np.maximum(power, 0.0) / np.maximum(self.weight_e, 1e-12)[:, None])
 
-    def _solve(self) -> None:
-        """The regularised IV normal equations: ``(C + W) theta = b + W theta_prior``.
+    def _solve(self, which: np.ndarray | None = None) -> None:
+        """The regularised IV normal equations: ``(C + W) theta = b + W theta_prior``, for the
+        vehicles ``which`` (a mask (N,); None: all).
 
         ``W = prior_weight I``: small, so the prior only decides the directions the data have not
         reached. (A weight growing with the residual power was tried: in closed loop the residual
         is mostly disturbance, which IV already handles, and it biased the z block.)
         """
+        sel = slice(None) if which is None else np.flatnonzero(which)
         w = self.config.prior_weight
-        lhs = self.cross + w * np.eye(WIDTH)
-        rhs = self.rhs + w * self._prior_norm
+        prior = self._prior_norm[sel]
+        lhs = self.cross[sel] + w * np.eye(WIDTH)
+        rhs = self.rhs[sel] + w * prior
         # (padded entries have zero regressors and instruments: the prior weight alone keeps them
         # at the prior, zero)
         rows = np.linalg.solve(lhs, rhs[..., None])[..., 0]
-        rows = np.where(self._mask, rows, self._prior_norm)
-        self._rows = rows
-        self.theta, self.coupling, self.loops = self._denormalise(rows)
+        rows = np.where(self._mask, rows, prior)
+        self._rows[sel] = rows
+        self.theta[sel], self.coupling[sel], self.loops[sel] = self._denormalise(rows)
 
-    def _update_excitation(self) -> None:
-        """Canonical correlations, uncertainty and status of every row (every 0.25 s)."""
+    def _update_excitation(self, which: np.ndarray | None = None) -> None:
+        """Canonical correlations, uncertainty and status of every row (every 0.25 s), for the
+        vehicles ``which`` (a mask (N,); None: all)."""
         cfg = self.config
-        n = self.theta.shape[0]
+        sel = slice(None) if which is None else np.flatnonzero(which)
+        rows = self._rows[sel]  # the current solution, normalised
+        n = rows.shape[0]
         exc = np.zeros((n, N_ROWS))
         unc = np.full((n, N_ROWS), np.inf)
-        rows = self._rows  # the current solution, normalised
-        sigma2 = self.res2 / max(self.weight_e, 1e-12)  # mean residual power
+        weight = np.maximum(self.weight_e[sel], 1e-12)[:, None]
+        sigma2 = self.res2[sel] / weight  # mean residual power
         # correlation time of the filtered residual; 4/lambda calibrated against the spread of
         # estimates over noise seeds (docs/identifier.md)
         tau = 4.0 / cfg.bandwidth
@@ -763,20 +825,20 @@ class IvIdentifier:
             if not self._mask[ps[0], 0]:
                 continue
             k = slice(0, size)
-            gx = self.gram_xi[:, ps][..., k, k]
-            gp = self.gram_phi[:, ps][..., k, k]
-            c = self.cross_e[:, ps][..., k, k]
+            gx = self.gram_xi[sel][:, ps][..., k, k]
+            gp = self.gram_phi[sel][:, ps][..., k, k]
+            c = self.cross_e[sel][:, ps][..., k, k]
             wx = _inv_sqrt(gx)
             wp = _inv_sqrt(gp)
             s = np.linalg.svd(wx @ c @ wp, compute_uv=False)
             # instruments too weak to mean anything (below 1e-3 RMS in normalised units: 1 mm of
             # position, 0.1 mrad of tilt) count as no excitation at all
-            rms = np.sqrt(np.trace(gx, axis1=-2, axis2=-1) / max(self.weight_e, 1e-12) / size)
+            rms = np.sqrt(np.trace(gx, axis1=-2, axis2=-1) / weight / size)
             exc[:, ps] = np.where(rms > QUIET, np.nan_to_num(s[..., -1]), 0.0)
             # IV covariance s2 tau C^-1 G_xi C^-T of the estimate's (long) window, relative to
             # the row's size
-            c_long = self.cross[:, ps][..., k, k]
-            gx_long = self.gram_xi_long[:, ps][..., k, k]
+            c_long = self.cross[sel][:, ps][..., k, k]
+            gx_long = self.gram_xi_long[sel][:, ps][..., k, k]
             try:
                 ci = np.linalg.inv(c_long + self.config.prior_weight * np.eye(size))
                 cov = np.einsum('...ij,...jk,...lk->...il', ci, gx_long, ci)
@@ -795,20 +857,21 @@ class IvIdentifier:
         # published uncertainty from below and keeps a moving row from being called identified;
         # it does not make it unidentifiable (a row converging fast from its prior moves too).
         step = self._excitation_every * self.h
-        self._rows_slow += min(1.0, step / DRIFT_TIME) * (rows - self._rows_slow)
-        drift = np.linalg.norm(rows - self._rows_slow, axis=-1) / np.maximum(
+        slow = self._rows_slow[sel]
+        slow += min(1.0, step / DRIFT_TIME) * (rows - slow)
+        self._rows_slow[sel] = slow
+        drift = np.linalg.norm(rows - slow, axis=-1) / np.maximum(
             np.linalg.norm(rows, axis=-1), 1e-12
         )
-        self.excitation = exc
-        self.uncertainty = np.maximum(unc, drift)
+        uncertainty = np.maximum(unc, drift)
         status = np.full((n, N_ROWS), CONVERGING, dtype=np.int8)
-        status[self.uncertainty <= cfg.identified_uncertainty] = IDENTIFIED
+        status[uncertainty <= cfg.identified_uncertainty] = IDENTIFIED
         status[(exc < cfg.excitation_threshold) | (unc > cfg.unidentifiable_uncertainty)] = (
             NOT_IDENTIFIABLE
         )
         if not cfg.estimate_coupling:
             status[:, list(COUPLING_ROWS)] = IDENTIFIED  # known (fixed) coupling
-        self.status = status
+        self.excitation[sel], self.uncertainty[sel], self.status[sel] = exc, uncertainty, status
 
     @property
     def n_vehicles(self) -> int:

@@ -54,6 +54,7 @@ from cloe_ros.core.algorithms import make_estimator
 from cloe_ros.core.anticipation import POSITION, AnticipationConfig, Anticipator, TrustStatus
 from cloe_ros.core.covariance import ErrorCovariance
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
+from cloe_ros.core.fleet import Fleet, PooledEstimator
 from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
 from cloe_ros.core.kinematics import (
     odometry_to_state_one,
@@ -264,8 +265,26 @@ NUMERICAL_FAILURES = (ArithmeticError, np.linalg.LinAlgError)
 EstimatorFactory = Callable[[EstimatorConfig, np.ndarray, np.ndarray, float], object]
 
 
+@dataclass(frozen=True)
+class Step:
+    """The inputs of one grid step: its time, the measurement interpolated there, the reference
+    as received and as the estimator takes it, the channels tracked (None: all)."""
+
+    t_ns: int
+    zeta: np.ndarray
+    r: np.ndarray
+    used: np.ndarray
+    tracked: np.ndarray | None
+
+
 class VehicleEngine:
-    """Validates one vehicle's inputs and runs its estimator in fixed steps of message time."""
+    """Validates one vehicle's inputs and runs its estimator in fixed steps of message time.
+
+    Alone, it steps its own estimator (:meth:`advance`); added to a
+    :class:`~cloe_ros.core.fleet.Fleet`, its estimator is a row of one shared with the other
+    vehicles and :meth:`Fleet.advance <cloe_ros.core.fleet.Fleet.advance>` steps the vehicles that
+    are due together, with the same estimates.
+    """
 
     def __init__(
         self,
@@ -282,6 +301,7 @@ class VehicleEngine:
         self._frame = config.world_frame or None
         self.child_frame = ''  # body frame of the first accepted odometry
         self._yaw: float | None = None
+        self.fleet: Fleet | None = None  # (set by Fleet.add)
         self._est = None
         self._t_ns: int | None = None  # last grid time processed
         self._anchor_ns: int | None = None  # (re)start no earlier than this
@@ -701,7 +721,7 @@ class VehicleEngine:
         self._clear_anticipation()
         if self._est is not None:
             self._model = (self._est.theta_hat[0].copy(), self._est.gain_l[0].copy())
-        self._est = None
+        self._set_estimator(None)
         self._t_ns = None
 
     def reset(self) -> None:
@@ -717,7 +737,7 @@ class VehicleEngine:
         if self._t_ns is not None:
             self._anchor_ns = self._t_ns + self.config.step_ns
             self._anchor_exact = True
-        self._est = None
+        self._set_estimator(None)
         self._t_ns = None
         self._model = None
         self._prediction_slot = None
@@ -752,21 +772,43 @@ class VehicleEngine:
         if iv:
             # the observer reads its gains from the config at every step, but for the
             # sliding-mode terms, which it holds per vehicle; the identifier is left as it is
+            est = self._set_estimator(None)
             est.config = config
             est.lambda_[:] = config.sm_gains
             est.exponents[:] = config.sm_exponents
+            self._set_estimator(est)
         else:
             new = self._factory(config, est.zeta_hat[0], self._last_r, self._h)
             new.theta_hat[:] = est.theta_hat
             new.gain_l[:] = est.gain_l
-            self._est = new
+            self._set_estimator(new)
+
+    def _set_estimator(self, est):
+        """Make ``est`` (of one vehicle; None: none) this vehicle's estimator, a row of the fleet's
+        when in one; returns the previous one as an estimator of its own."""
+        old = self._est
+        if isinstance(old, PooledEstimator):
+            old = old.detach()
+        self._est = est if est is None or self.fleet is None else self.fleet.adopt(self, est)
+        return old
+
+    @property
+    def estimator(self):
+        """The running estimator (None before the start): of one vehicle, or a row of the
+        fleet's."""
+        return self._est
 
     # ------------------------------------------------------------------------------ steps
 
     def advance(self) -> list[Estimate]:
         """Run every step whose inputs are complete; returns their estimates in time order."""
-        out, self._pending = self._pending, []
+        out = self.take_pending()
         out.extend(self._run(force_reference=False))
+        return out
+
+    def take_pending(self) -> list[Estimate]:
+        """The estimates of steps already run (while handling a time jump), not yet returned."""
+        out, self._pending = self._pending, []
         return out
 
     def finish(self) -> list[Estimate]:
@@ -849,47 +891,73 @@ class VehicleEngine:
         est = self._factory(config, zeta, r, self._h)
         if self._model is not None and not iv:
             est.theta_hat[0], est.gain_l[0] = self._model
-        self._est, self._t_ns, self._anchor_exact = est, t0, False
+        self._set_estimator(est)
+        self._t_ns, self._anchor_exact = t0, False
         self._last_r = r
         self._covariance.restart()
         return self._estimate(t0, zeta, r)
 
     def _run(self, force_reference: bool) -> list[Estimate]:
         out: list[Estimate] = []
+        while (step := self.next_step(force_reference, out)) is not None:
+            if not self.complete_step(step, self.step_alone(step), out):
+                break
+        return out
+
+    def next_step(self, force_reference: bool, out: list[Estimate]) -> Step | None:
+        """The inputs of the next grid step if they are complete, else None. Starts the
+        estimator first if it can (its first estimate goes to ``out``)."""
         if self._est is None:
             try:
                 first = self._start(force_reference)
             except NUMERICAL_FAILURES:
                 self._diverged(self._start_time())
-                return out
+                return None
             if first is None:
-                return out
+                return None
             out.append(first)
-        step = self.config.step_ns
-        h = step / NS
-        est = self._est
-        while True:
-            t_next = self._t_ns + step
-            if not force_reference and not self._reference_complete(t_next):
-                break
-            zeta = self._measurement(t_next)
-            if zeta is None:
-                break
-            r = self._reference_at(t_next, zeta[8])
-            used, tracked = self._reference_for_step(zeta, r)
-            try:
-                est.step(zeta[None], used[None], h, None if tracked is None else tracked[None])
-                self._t_ns = t_next
-                self._last_r = used
-                self._track_offsets(zeta, used)
-                if not (np.all(np.isfinite(est.zeta_hat)) and np.all(np.isfinite(est.theta_hat))):
-                    raise FloatingPointError('non-finite estimate')
-                out.append(self._estimate(t_next, zeta, r, used))
-            except NUMERICAL_FAILURES:
-                # a diverged estimator never publishes: start over on the next step's data
-                self._diverged(t_next)
-                break
-        return out
+        t_next = self._t_ns + self.config.step_ns
+        if not force_reference and not self._reference_complete(t_next):
+            return None
+        zeta = self._measurement(t_next)
+        if zeta is None:
+            return None
+        r = self._reference_at(t_next, zeta[8])
+        used, tracked = self._reference_for_step(zeta, r)
+        return Step(t_next, zeta, r, used, tracked)
+
+    def step_alone(self, step: Step) -> bool:
+        """Step this vehicle's estimator alone; False if it failed numerically."""
+        tracked = None if step.tracked is None else step.tracked[None]
+        try:
+            self._est.step(step.zeta[None], step.used[None], self._h, tracked)
+        except NUMERICAL_FAILURES:
+            return False
+        return True
+
+    def complete_step(self, step: Step, ok: bool, out: list[Estimate]) -> bool:
+        """After the estimator stepped (``ok``: without failing), the estimate of ``step`` into
+        ``out``; False if the estimator diverged (it restarts on the next step's data)."""
+        try:
+            if not ok:
+                raise FloatingPointError('the step failed')
+            est = self._est
+            self._t_ns = step.t_ns
+            self._last_r = step.used
+            self._track_offsets(step.zeta, step.used)
+            if not (np.all(np.isfinite(est.zeta_hat)) and np.all(np.isfinite(est.theta_hat))):
+                raise FloatingPointError('non-finite estimate')
+            out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used))
+        except NUMERICAL_FAILURES:
+            # a diverged estimator never publishes: start over on the next step's data
+            self._diverged(step.t_ns)
+            return False
+        return True
+
+    @property
+    def step_s(self) -> float:
+        """The grid step, s."""
+        return self._h
 
     def _reference_for_step(
         self, zeta: np.ndarray, r: np.ndarray

@@ -689,11 +689,16 @@ class IvIdentifier(Rows):
         """
         cfg = self.config
         n = self.theta.shape[0]
-        which = np.ones(n, dtype=bool) if which is None else which
+        which = np.ones(n, dtype=bool) if which is None else which.copy()
+        finite = np.isfinite(self.theta).all(axis=1) & np.isfinite(self.coupling).all(axis=1)
+        which &= finite  # (a vehicle whose estimate is not finite is restarted by the engine)
         usable = (self.status >= CONVERGING) & which[:, None]
         moving = self.reference_rms() > QUIET
-        stable = block_is_stable(self.theta, self.coupling, margin=0.05)
-        stable &= which[:, None]
+        stable = np.zeros((n, len(BLOCKS)), dtype=bool)
+        if which.all():
+            stable[:] = block_is_stable(self.theta, self.coupling, margin=0.05)
+        elif which.any():
+            stable[which] = block_is_stable(self.theta[which], self.coupling[which], margin=0.05)
         before = self._aux_equilibrium() if np.any(stable) else None
         for j, sl in enumerate(BLOCK_SLICES):
             ok = stable[:, j] & moving[:, j]
@@ -810,6 +815,14 @@ class IvIdentifier(Rows):
         """Canonical correlations, uncertainty and status of every row (every 0.25 s), for the
         vehicles ``which`` (a mask (N,); None: all)."""
         cfg = self.config
+        broken = self._broken_statistics(which)
+        if broken.any():
+            # a vehicle whose statistics overflowed gets a non-finite estimate (the engine then
+            # restarts it); the others are measured as usual (linalg would raise for all)
+            self.theta[broken] = np.nan
+            which = (np.ones(len(broken), dtype=bool) if which is None else which) & ~broken
+            if not which.any():
+                return
         sel = slice(None) if which is None else np.flatnonzero(which)
         rows = self._rows[sel]  # the current solution, normalised
         n = rows.shape[0]
@@ -872,6 +885,13 @@ class IvIdentifier(Rows):
         if not cfg.estimate_coupling:
             status[:, list(COUPLING_ROWS)] = IDENTIFIED  # known (fixed) coupling
         self.excitation[sel], self.uncertainty[sel], self.status[sel] = exc, uncertainty, status
+
+    def _broken_statistics(self, which: np.ndarray | None) -> np.ndarray:
+        """Vehicles (a mask (N,)) among ``which`` whose statistics are not all finite."""
+        ok = np.isfinite(self.res2).all(axis=1) & np.isfinite(self._rows).all(axis=(1, 2))
+        for stat in (self.cross, self.cross_e, self.gram_xi, self.gram_phi, self.gram_xi_long):
+            ok &= np.isfinite(stat).all(axis=(1, 2, 3))
+        return ~ok if which is None else which & ~ok
 
     @property
     def n_vehicles(self) -> int:

@@ -479,6 +479,26 @@ def test_vehicles_started_apart_share_one_estimator_as_if_each_ran_alone():
                                                            r_a[0], H)])  # fmt: skip
 
 
+def test_a_vehicle_whose_statistics_overflow_fails_alone_in_a_batch():
+    """Overflowed statistics make linalg raise; in a batch they must not stop the other vehicles:
+    that vehicle's estimate turns non-finite (the engine restarts it) and the other one steps on
+    exactly as before."""
+    _, _, r, z = reduced_loop_flight((6.0, 2.5), duration=12.0)
+    pair = IvIdentifier(IdentifierConfig(), H, np.stack([z[0], z[0]]), np.stack([r[0], r[0]]))
+    alone = IvIdentifier(IdentifierConfig(), H, z[0][None], r[0][None])
+    failed = []
+    for k in range(1, len(z)):
+        if k == 600:
+            pair.cross_e[1, 0, 0, 0] = np.nan  # (the SVD would raise for both vehicles)
+        pair.step(np.stack([z[k], z[k]]), np.stack([r[k], r[k]]))
+        alone.step(z[k][None], r[k][None])
+        if not np.all(np.isfinite(pair.theta[1])):
+            failed.append(k)
+    assert failed and failed[0] - 600 <= alone._excitation_every, failed[:3]
+    np.testing.assert_allclose(pair.theta[0], alone.theta[0], rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(pair.status[0], alone.status[0])
+
+
 def test_the_estimate_does_not_depend_on_the_origin_of_the_world_frame(disturbed_flight):
     """The same flight 50 m away (positions and references shifted alike) is the same flight. The
     auxiliary model's equilibrium moves with every model change by ``(g_new - g_old) r``; without

@@ -1,0 +1,185 @@
+"""Many vehicles, one batched estimator step: the engines of a node (or bag) stepped together.
+
+Each vehicle keeps its own :class:`~cloe_ros.core.engine.VehicleEngine`: its input validation,
+its timeline (grid, held samples, time jumps) and its anticipation. What a :class:`Fleet` adds is
+where the estimators live: the vehicles whose estimator settings agree are rows of one estimator
+(an :class:`EstimatorPool`, see :mod:`cloe_ros.core.rows`), and :meth:`Fleet.advance` runs in
+rounds, each round one grid step of every vehicle that is due, in one batched call per pool. A
+vehicle behind the others (its inputs came late) catches up over the next rounds, alone or with
+the others that are still due.
+
+The estimates are the ones each vehicle gets alone (every operation is per row; the test suite
+checks it to 1e-9), so the node, ``cloe infer`` and ``cloe evaluate`` agree whatever the batching.
+
+Numerical failures. A vehicle whose estimate turns non-finite is restarted by its engine, as
+alone. The identifier keeps one vehicle's overflowed statistics from raising for the others;
+should a batched step raise all the same, every vehicle of that batch is restarted.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Iterable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cloe_ros.core.rows import Rows
+
+if TYPE_CHECKING:
+    from cloe_ros.core.engine import Estimate, Step, VehicleEngine
+
+
+class _Row:
+    """One vehicle's view of a batched object: every attribute read is that vehicle's row
+    (shape (1, ...)), tuples of arrays element-wise, nested batched objects as views too."""
+
+    __slots__ = ('_i', '_of')
+
+    def __init__(self, of, i: int) -> None:
+        self._of, self._i = of, i
+
+    def __getattr__(self, name: str):
+        value = getattr(self._of, name)
+        i = self._i
+        if isinstance(value, tuple):
+            return tuple(v[i : i + 1] for v in value)
+        if isinstance(value, Rows):
+            return _Row(value, i)
+        return value[i : i + 1]
+
+
+class PooledEstimator:
+    """A vehicle's estimator that is a row of an :class:`EstimatorPool`: reads like an estimator
+    of one vehicle (``zeta_hat``, ``theta_hat``, ``gain_l``, ``coupling``, ``model``,
+    ``identifier``: arrays of shape (1, ...)), steps through the pool."""
+
+    def __init__(self, pool: EstimatorPool, key: Hashable) -> None:
+        self.pool, self.key = pool, key
+
+    def __getattr__(self, name: str):
+        return getattr(_Row(self.pool.est, self.pool.rows[self.key]), name)
+
+    @property
+    def config(self):
+        return self.pool.est.config if hasattr(self.pool.est, 'config') else None
+
+    def step(self, zeta, r, h, tracked=None) -> None:
+        """Step this vehicle alone (the pool's other vehicles wait)."""
+        if not self.pool.step([self.key], zeta, r, h, tracked):
+            raise np.linalg.LinAlgError('the batched step failed')
+
+    def detach(self) -> Rows:
+        """This vehicle's estimator as one of its own, out of the pool."""
+        return self.pool.remove(self.key)
+
+
+class EstimatorPool:
+    """The estimators of vehicles whose settings agree, as the rows of one estimator."""
+
+    def __init__(self, est: Rows, key: Hashable) -> None:
+        self.est = est
+        self.keys = [key]
+        self.rows = {key: 0}
+
+    def accepts(self, est: Rows) -> bool:
+        return self.est.shares_settings(est)
+
+    def add(self, key: Hashable, est: Rows) -> PooledEstimator:
+        self.est = type(self.est).concatenate([self.est, est])
+        self.rows[key] = len(self.keys)
+        self.keys.append(key)
+        return PooledEstimator(self, key)
+
+    def remove(self, key: Hashable) -> Rows:
+        """Take ``key``'s vehicle out; returns its estimator (of one vehicle)."""
+        i = self.rows.pop(key)
+        own = self.est.take([i])
+        self.keys.pop(i)
+        self.est = self.est.delete([i]) if self.keys else None
+        self.rows = {k: j for j, k in enumerate(self.keys)}
+        return own
+
+    def step(self, keys: list, zeta, r, h: float, tracked=None) -> bool:
+        """One step of the vehicles ``keys`` with their measurements (K, 12), references (K, 4)
+        and tracked channels (K, 4) or None, in ``keys``' order; False if it failed (nothing is
+        then known of their state)."""
+        rows = np.fromiter((self.rows[k] for k in keys), dtype=np.intp, count=len(keys))
+        try:
+            if len(rows) == len(self.keys):  # everyone: in place, in row order
+                order = np.argsort(rows)
+                tracked = None if tracked is None else tracked[order]
+                self.est.step(zeta[order], r[order], h, tracked)
+            else:
+                part = self.est.take(rows)
+                part.step(zeta, r, h, tracked)
+                self.est.put(rows, part)
+        except (ArithmeticError, np.linalg.LinAlgError):
+            return False
+        return True
+
+
+class Fleet:
+    """The engines of many vehicles, their estimators batched (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self.engines: dict[str, VehicleEngine] = {}
+        self._pools: list[EstimatorPool] = []
+
+    def add(self, engine: VehicleEngine) -> VehicleEngine:
+        self.engines[engine.name] = engine
+        engine.fleet = self
+        return engine
+
+    def adopt(self, engine: VehicleEngine, est: Rows) -> PooledEstimator | Rows:
+        """Where ``engine``'s newly started estimator lives: a row of the pool whose settings
+        it shares (a new pool if none)."""
+        if not isinstance(est, Rows):
+            return est  # (an estimator of its own kind, e.g. a test's: stepped alone)
+        self._pools = [p for p in self._pools if p.keys]
+        for pool in self._pools:
+            if pool.accepts(est):
+                return pool.add(engine.name, est)
+        pool = EstimatorPool(est, engine.name)
+        self._pools.append(pool)
+        return PooledEstimator(pool, engine.name)
+
+    def advance(self, names: Iterable[str] | None = None) -> dict[str, list[Estimate]]:
+        """Run every step whose inputs are complete, of the vehicles ``names`` (default: all),
+        each grid step of all the vehicles due in one batched call per pool. Returns the
+        estimates per vehicle, in time order (vehicles with none are left out)."""
+        engines = [self.engines[n] for n in (self.engines if names is None else names)]
+        out = {engine.name: engine.take_pending() for engine in engines}
+        while engines:
+            batches: dict[int, list[tuple[VehicleEngine, Step]]] = {}
+            for engine in engines:
+                step = engine.next_step(False, out[engine.name])
+                if step is not None:
+                    est = engine.estimator
+                    where = id(est.pool) if isinstance(est, PooledEstimator) else id(engine)
+                    batches.setdefault(where, []).append((engine, step))
+            engines = []
+            for batch in batches.values():
+                first, step = batch[0]
+                est = first.estimator
+                if isinstance(est, PooledEstimator):
+                    steps = [s for _, s in batch]
+                    ok = est.pool.step(
+                        [e.name for e, _ in batch],
+                        np.array([s.zeta for s in steps]),
+                        np.array([s.used for s in steps]),
+                        first.step_s,
+                        _tracked([s.tracked for s in steps]),
+                    )
+                else:
+                    ok = first.step_alone(step)
+                for engine, step in batch:
+                    if engine.complete_step(step, ok, out[engine.name]):
+                        engines.append(engine)
+        return {name: estimates for name, estimates in out.items() if estimates}
+
+
+def _tracked(tracked: list) -> np.ndarray | None:
+    """The tracked channels of a batch (K, 4), None when every vehicle tracks every channel."""
+    if all(t is None for t in tracked):
+        return None
+    return np.array([np.ones(4, dtype=bool) if t is None else t for t in tracked])

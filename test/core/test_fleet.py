@@ -1,0 +1,182 @@
+"""A fleet steps the vehicles that are due together, and each gets the estimates it gets alone."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
+from cloe_ros.core.estimator import EstimatorConfig
+from cloe_ros.core.fleet import EstimatorPool, Fleet, PooledEstimator
+from test.core.test_engine import in_time_order, messages, simulated_flight
+
+IV = EngineConfig(estimator=EstimatorConfig('cloe_iv'))
+SM = EngineConfig(estimator=EstimatorConfig('cloe_sm'))
+
+
+@pytest.fixture(scope='module')
+def flight():
+    return simulated_flight()
+
+
+def moved(sequence, shift_ns=0, offset=(0.0, 0.0, 0.0), start_ns=None):
+    """The same flight ``offset`` m away, ``shift_ns`` later, from ``start_ns`` on."""
+    out = []
+    for kind, m in sequence:
+        stamp = m.stamp_ns + shift_ns
+        if start_ns is not None and stamp < start_ns:
+            continue
+        out.append((kind, replace(m, stamp_ns=stamp, position=m.position + np.array(offset))))
+    return out
+
+
+def swarm(flight):
+    """Four vehicles: the flight; 1.37 s later and 3 m away; 0.5 s later from 4 s on with a
+    jump back in time (a restarted source) halfway; and one on CLOE-SM. As (name, config,
+    inputs), inputs in time order."""
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)
+    t0 = seq[0][1].stamp_ns
+    jump = moved(seq, 500_000_000, start_ns=t0 + 4 * NS)
+    half = len(jump) // 2
+    jump = jump[:half] + moved(jump[half:], -7_993_000_000, offset=(1.0, 0.0, 0.0))
+    return [
+        ('/a', IV, seq),
+        ('/b', IV, moved(seq, 1_370_000_000, offset=(3.0, 0.0, 0.0))),
+        ('/c', IV, jump),
+        ('/d', SM, seq),
+    ]
+
+
+def merged(vehicles):
+    """Every vehicle's inputs in one stream, each vehicle's in its own order (as a node receives
+    them): the j-th input of every vehicle, then the (j+1)-th."""
+    stream = [(j, i, name, kind, m) for i, (name, _, seq) in enumerate(vehicles)
+              for j, (kind, m) in enumerate(seq)]  # fmt: skip
+    stream.sort(key=lambda x: (x[0], x[1]))
+    return [(name, kind, m) for _, _, name, kind, m in stream]
+
+
+def feed(engine, kind, m):
+    reason = (engine.add_odometry if kind == 'odom' else engine.add_reference)(m)
+    assert reason is None, reason
+
+
+def alone(vehicles):
+    out = {}
+    for name, config, seq in vehicles:
+        engine = VehicleEngine(config, name=name)
+        out[name] = []
+        for kind, m in seq:
+            feed(engine, kind, m)
+            out[name] += engine.advance()
+        out[name] += engine.finish()
+    return out
+
+
+def assert_same(got, want):
+    assert [e.stamp_ns for e in got] == [e.stamp_ns for e in want]
+    for name in ('zeta_hat', 'theta_hat', 'gain_l', 'error_variance'):
+        np.testing.assert_allclose(np.array([getattr(e, name) for e in got]),
+                                   np.array([getattr(e, name) for e in want]),
+                                   rtol=1e-9, atol=1e-9, err_msg=name)  # fmt: skip
+    assert [e.prediction_status for e in got] == [e.prediction_status for e in want]
+    for a, b in zip(got, want):
+        assert (a.prediction is None) == (b.prediction is None)
+        if b.prediction is not None:
+            np.testing.assert_allclose(a.prediction[1], b.prediction[1], rtol=1e-9, atol=1e-9)
+
+
+def test_vehicles_stepped_together_get_the_estimates_each_gets_alone(flight, monkeypatch):
+    vehicles = swarm(flight)
+    sizes = []
+    step = EstimatorPool.step
+
+    def counted(self, keys, *args):
+        sizes.append(len(keys))
+        return step(self, keys, *args)
+
+    monkeypatch.setattr(EstimatorPool, 'step', counted)
+    fleet = Fleet()
+    for name, config, _ in vehicles:
+        fleet.add(VehicleEngine(config, name=name))
+    out = {name: [] for name, _, _ in vehicles}
+    for k, (name, kind, m) in enumerate(merged(vehicles)):
+        feed(fleet.engines[name], kind, m)
+        if k % 7 == 0:  # (inputs of several vehicles, and of several steps, between two rounds)
+            for v, estimates in fleet.advance().items():
+                out[v] += estimates
+    for v, estimates in fleet.advance().items():
+        out[v] += estimates
+    for name, engine in fleet.engines.items():
+        out[name] += engine.finish()
+    want = alone(vehicles)
+    for name, _, _ in vehicles:
+        assert_same(out[name], want[name])
+    assert sum(e.prediction is not None for e in out['/c']) > 20  # (after the jump back too)
+    assert fleet.engines['/c'].stats.resets == 0 and fleet.engines['/c'].stats.steps > 0
+    # the three cloe_iv vehicles share one estimator and were stepped three at a time
+    assert isinstance(fleet.engines['/a'].estimator, PooledEstimator)
+    assert fleet.engines['/a'].estimator.pool is fleet.engines['/b'].estimator.pool
+    assert fleet.engines['/d'].estimator.pool is not fleet.engines['/a'].estimator.pool
+    assert max(sizes) == 3 and sizes.count(3) > 1000
+
+
+def test_a_vehicle_that_diverges_in_a_batch_restarts_alone(flight):
+    """One vehicle's statistics overflow (poisoned here): it counts a divergence and restarts;
+    the others step on as if nothing happened."""
+    vehicles = swarm(flight)[:2]
+    fleet = Fleet()
+    for name, config, _ in vehicles:
+        fleet.add(VehicleEngine(config, name=name))
+    out = {name: [] for name, _, _ in vehicles}
+    poisoned = False
+    for name, kind, m in merged(vehicles):
+        feed(fleet.engines[name], kind, m)
+        for v, estimates in fleet.advance().items():
+            out[v] += estimates
+        b = fleet.engines['/b'].estimator
+        if not poisoned and b is not None and fleet.engines['/b'].stats.steps > 800:
+            b.pool.est.identifier.cross_e[b.pool.rows['/b']] = np.nan
+            poisoned = True
+    assert poisoned
+    assert fleet.engines['/b'].stats.diverged == 1
+    assert fleet.engines['/a'].stats.diverged == 0
+    assert all(np.all(np.isfinite(e.zeta_hat)) for e in out['/b'])
+    want = alone(vehicles[:1])['/a']
+    assert_same(out['/a'], want[: len(out['/a'])])
+
+
+def test_a_vehicle_with_other_settings_gets_a_pool_of_its_own(flight):
+    """Changed gains of one vehicle move its estimator, state and all, out of the shared one."""
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)[:400]
+    fleet = Fleet()
+    for name in ('/a', '/b'):
+        fleet.add(VehicleEngine(IV, name=name))
+    for kind, m in seq:
+        for engine in fleet.engines.values():
+            feed(engine, kind, m)
+        fleet.advance()
+    a, b = fleet.engines['/a'], fleet.engines['/b']
+    assert a.estimator.pool is b.estimator.pool
+    before = b.estimator.zeta_hat[0].copy()
+    b.update_estimator(replace(IV.estimator, l_max=IV.estimator.l_max / 2))
+    assert a.estimator.pool is not b.estimator.pool and len(a.estimator.pool.keys) == 1
+    np.testing.assert_array_equal(b.estimator.zeta_hat[0], before)
+    assert b.estimator.config.l_max == IV.estimator.l_max / 2
+    assert a.estimator.config.l_max == IV.estimator.l_max
+
+
+def test_an_engine_alone_and_in_a_fleet_of_one_agree(flight):
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)[:1500]
+    fleet = Fleet()
+    engine = fleet.add(VehicleEngine(IV, name='/a'))
+    got = []
+    for kind, m in seq:
+        feed(engine, kind, m)
+        got += engine.advance()  # (a fleet's engine steps alone too)
+    assert_same(got, alone([('/a', IV, seq)])['/a'][: len(got)])

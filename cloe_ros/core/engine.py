@@ -342,7 +342,7 @@ class VehicleEngine:
             prediction.rate, config.estimator.ground_altitude,
         ) if prediction.enabled else None  # fmt: skip
         self._t0_ns: int | None = None  # origin of the anticipator's seconds
-        self._covariance = ErrorCovariance(self._h)  # the estimate's error statistics
+        self._covariance = ErrorCovariance(self.step_s)  # the estimate's error statistics
         self._trust: TrustStatus | None = None
 
     # ----------------------------------------------------------------------------- inputs
@@ -778,7 +778,7 @@ class VehicleEngine:
             est.exponents[:] = config.sm_exponents
             self._set_estimator(est)
         else:
-            new = self._factory(config, est.zeta_hat[0], self._last_r, self._h)
+            new = self._factory(config, est.zeta_hat[0], self._last_r, self.step_s)
             new.theta_hat[:] = est.theta_hat
             new.gain_l[:] = est.gain_l
             self._set_estimator(new)
@@ -888,7 +888,7 @@ class VehicleEngine:
         if iv and self._model is not None and not unstable_blocks(self._model[0]):
             # after a time jump the IV identifier starts over from its last (stable) estimate
             config = replace(config, theta_initial=tuple(self._model[0]))
-        est = self._factory(config, zeta, r, self._h)
+        est = self._factory(config, zeta, r, self.step_s)
         if self._model is not None and not iv:
             est.theta_hat[0], est.gain_l[0] = self._model
         self._set_estimator(est)
@@ -930,7 +930,7 @@ class VehicleEngine:
         """Step this vehicle's estimator alone; False if it failed numerically."""
         tracked = None if step.tracked is None else step.tracked[None]
         try:
-            self._est.step(step.zeta[None], step.used[None], self._h, tracked)
+            self._est.step(step.zeta[None], step.used[None], self.step_s, tracked)
         except NUMERICAL_FAILURES:
             return False
         return True
@@ -953,11 +953,6 @@ class VehicleEngine:
             self._diverged(step.t_ns)
             return False
         return True
-
-    @property
-    def step_s(self) -> float:
-        """The grid step, s."""
-        return self._h
 
     def _reference_for_step(
         self, zeta: np.ndarray, r: np.ndarray
@@ -1134,5 +1129,6 @@ class VehicleEngine:
         return self._est is not None
 
     @property
-    def _h(self) -> float:
+    def step_s(self) -> float:
+        """The grid step, s."""
         return self.config.step_ns / NS

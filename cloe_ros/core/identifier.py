@@ -632,10 +632,7 @@ class IvIdentifier(Rows):
             self.weight_e += h * waiting
             self._steps += settled
         due = (self._steps % self._excitation_every == 1) | (self._excitation_every == 1)
-        if waiting is not None:
-            due &= settled
-        if due.any():
-            self._update_excitation(None if due.all() else due)
+        _for_due(self._update_excitation, due if waiting is None else due & settled)
         excited = w.excited  # (N, rows)
         np.greater_equal(self.excitation, cfg.excitation_threshold, out=excited)
         if active is not None:
@@ -656,19 +653,15 @@ class IvIdentifier(Rows):
         self.gram_xi_long *= mu[..., None, None]
         self.gram_xi_long += xx
         due = (self._steps % self._solve_every == 0) | (self._solve_every == 1)
-        if waiting is not None:
-            due &= settled
-        if due.any():
-            self._solve(None if due.all() else due)
+        _for_due(self._solve, due if waiting is None else due & settled)
 
         if waiting is None:
             self._since_aux += h
         else:
             self._since_aux[settled] += h
         due = self._since_aux >= cfg.aux_period - 1e-9
-        if due.any():
-            self._since_aux[due] = 0.0
-            self._update_model(None if due.all() else due)
+        self._since_aux[due] = 0.0
+        _for_due(self._update_model, due)
 
     def _update_model(self, which: np.ndarray | None = None) -> None:
         """Refresh the auxiliary model and the usable model (every ``aux_period``) of the
@@ -695,9 +688,7 @@ class IvIdentifier(Rows):
         usable = (self.status >= CONVERGING) & which[:, None]
         moving = self.reference_rms() > QUIET
         stable = np.zeros((n, len(BLOCKS)), dtype=bool)
-        if which.all():
-            stable[:] = block_is_stable(self.theta, self.coupling, margin=0.05)
-        elif which.any():
+        if which.any():
             stable[which] = block_is_stable(self.theta[which], self.coupling[which], margin=0.05)
         before = self._aux_equilibrium() if np.any(stable) else None
         for j, sl in enumerate(BLOCK_SLICES):
@@ -896,6 +887,13 @@ class IvIdentifier(Rows):
     @property
     def n_vehicles(self) -> int:
         return self.theta.shape[0]
+
+
+def _for_due(update, due: np.ndarray) -> None:
+    """``update(which)`` for the vehicles ``due`` (a mask (N,); passed as None when all are due,
+    so the update runs on the whole arrays), if any is."""
+    if due.any():
+        update(None if due.all() else due)
 
 
 def _inv_sqrt(g: np.ndarray) -> np.ndarray:

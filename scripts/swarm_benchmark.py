@@ -1,6 +1,6 @@
 """Swarm load on one inference node, as a ratio to a do-nothing subscriber under the same load.
 
-    .venv/bin/python scripts/swarm_benchmark.py --vehicles 10 100 --duration 20
+    .venv/bin/python scripts/swarm_benchmark.py --vehicles 10 100 --duration 20 [--batch-period S]
 
 For each N: one process publishes N vehicles' ``/uavK/odom`` at 100 Hz and ``/uavK/reference`` at
 10 Hz (a circle, raw CDR, stamped with the wall clock). It is received first by a do-nothing
@@ -157,7 +157,8 @@ def listen(n: int, watch: str) -> None:
     rclpy.shutdown()
 
 
-def run(n: int, duration: float, receiver: str, tmp: Path) -> dict[str, float]:
+def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None = None
+        ) -> dict[str, float]:  # fmt: skip
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     env.setdefault('ROS_DOMAIN_ID', '91')
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -174,7 +175,8 @@ def run(n: int, duration: float, receiver: str, tmp: Path) -> dict[str, float]:
                                            stdout=subprocess.PIPE, text=True)  # fmt: skip
         procs['rx'] = subprocess.Popen(
             [sys.executable, '-m', 'cloe_ros.ros.inference_node', '--ros-args', '-p',
-             f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p', 'reference_timeout:=5.0'],
+             f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p', 'reference_timeout:=5.0',
+             *(['-p', f'batch_period:={batch}'] if batch is not None else [])],
             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     time.sleep(3.0)  # (discovery)
     cpu0 = cpu_seconds(procs['rx'].pid)
@@ -249,6 +251,8 @@ def main() -> int:
     parser.add_argument('--offline', type=Path, metavar='BAG',
                         help='instead: cloe infer on BAG beside the I/O floor')
     parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument('--batch-period', type=float, default=None,
+                        help="the node's batch_period, s (default: the node's default)")
     args = parser.parse_args()
     if args.offline:
         offline(args.offline, args.repeat)
@@ -261,7 +265,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.vehicles:
             f = run(n, args.duration, 'floor', Path(tmp))
-            c = run(n, args.duration, 'node', Path(tmp))
+            c = run(n, args.duration, 'node', Path(tmp), args.batch_period)
             odom = round(args.duration * 100) * n
             floor_us = 1e6 * f['cpu_s'] / max(f['received'], 1)
             node_us = 1e6 * c['cpu_s'] / c['sent']

@@ -126,8 +126,20 @@ class Fleet:
         self._pools: list[EstimatorPool] = []
 
     def add(self, engine: VehicleEngine) -> VehicleEngine:
+        """Add ``engine`` (one of the same name leaves the fleet first); its estimator joins a
+        pool at its next start."""
+        if engine.name in self.engines:
+            self.remove(engine.name)
         self.engines[engine.name] = engine
         engine.fleet = self
+        return engine
+
+    def remove(self, name: str) -> VehicleEngine:
+        """Take vehicle ``name`` out of the fleet; its engine keeps its estimator, as its own."""
+        engine = self.engines.pop(name)
+        est = engine._set_estimator(None)
+        engine.fleet = None
+        engine._set_estimator(est)
         return engine
 
     def adopt(self, engine: VehicleEngine, est: Rows) -> PooledEstimator | Rows:

@@ -6,7 +6,10 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
   and, optionally, ``<ns>/reference_plan`` (nav_msgs/Path, planned future references), as raw CDR
   decoded by the same code as ``cloe infer``;
 * runs a :class:`cloe_ros.core.engine.VehicleEngine` in fixed steps of message time (header
-  stamps; never the wall clock);
+  stamps; never the wall clock). The engines are one :class:`cloe_ros.core.fleet.Fleet`: every
+  ``batch_period`` of wall time the vehicles with new input step together, one batched estimator
+  call per grid step (``batch_period`` 0: each vehicle at each of its messages; the estimates are
+  the same either way);
 * publishes ``<ns>/<output_ns>/state`` (nav_msgs/Odometry) every step,
   ``<ns>/<output_ns>/parameters`` (std_msgs/Float64MultiArray, labelled) at ``parameters_rate`` and
   ``<ns>/<output_ns>/prediction`` (nav_msgs/Path, poses at future stamps) at ``prediction_rate``;
@@ -34,6 +37,7 @@ from visualization_msgs.msg import MarkerArray
 
 from cloe_ros.core.anticipation import CHANNELS
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
+from cloe_ros.core.fleet import Fleet
 from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.io import messages
 from cloe_ros.io.config import DEFAULTS, SettingsError, build_configs, node_values
@@ -88,7 +92,10 @@ class InferenceNode(Node):
         depth = declared['qos_depth']
         in_qos = qos(reliable=reliable, depth=depth)
         out_qos = qos(reliable=True, depth=depth)
-        self.engines: dict[str, VehicleEngine] = {}
+        self.fleet = Fleet()  # every vehicle's engine, their estimators batched
+        self.engines: dict[str, VehicleEngine] = self.fleet.engines
+        # the vehicles with input since the last batch (a dict: in order of arrival)
+        self._due: dict[str, None] = {}
         self.encoders: dict[str, OutputEncoder] = {}
         self.publishers_: dict[str, object] = {}
         self.malformed: dict[str, int] = {}
@@ -105,10 +112,15 @@ class InferenceNode(Node):
         for v in self.listed or ([] if self.discover else ['']):
             if self._ours(self._namespace(v)):  # (a listed vehicle of another shard: not ours)
                 self._add_vehicle(v)
-        self._graph_timer = self.create_timer(
-            declared['discovery_period'], self._poll_graph,
-            clock=Clock(clock_type=ClockType.STEADY_TIME),
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.batch_period = declared['batch_period']
+        self._batch_timer = (
+            self.create_timer(self.batch_period, self._step_due, clock=steady)
+            if self.batch_period > 0 else None
         )  # fmt: skip
+        self._graph_timer = self.create_timer(
+            declared['discovery_period'], self._poll_graph, clock=steady
+        )
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
         )
@@ -207,7 +219,7 @@ class InferenceNode(Node):
             return
         restart = any(SETTINGS[n].on_change == RESTARTS for n in changed)
         self.engine_config, self.output_config = engine_config, output_config
-        for v, engine in self.engines.items():
+        for v, engine in list(self.engines.items()):
             if restart:
                 self._make_vehicle(v, keep_stats=True)
             else:
@@ -262,7 +274,7 @@ class InferenceNode(Node):
         if keep_stats and old is not None:
             engine.stats = old.stats
             engine.stats.resets += 1
-        self.engines[vehicle] = engine
+        self.fleet.add(engine)  # (replacing the old engine, whose estimator leaves its pool)
         self.encoders[vehicle] = OutputEncoder(
             self.output_config, vehicle, self.engine_config.prediction.enabled
         )
@@ -354,7 +366,7 @@ class InferenceNode(Node):
             self._odom_heard[vehicle] = time.monotonic()
             engine[vehicle].add_odometry(sample)
             self._warn_rejections(vehicle)
-            self._publish(vehicle)
+            self._input(vehicle)
 
         return callback
 
@@ -369,7 +381,7 @@ class InferenceNode(Node):
                 return
             engine[vehicle].add_reference(sample)
             self._warn_rejections(vehicle)
-            self._publish(vehicle)
+            self._input(vehicle)
 
         return callback
 
@@ -442,11 +454,25 @@ class InferenceNode(Node):
             )
         return out
 
-    def _publish(self, vehicle: str) -> None:
+    def _input(self, vehicle: str) -> None:
+        """Vehicle ``vehicle`` has new input: step it now, or with the others at the next batch."""
+        if self._batch_timer is None:
+            self._publish_all(self.fleet.advance([vehicle]))
+        else:
+            self._due[vehicle] = None
+
+    def _step_due(self) -> None:
+        """The batch: step every vehicle with new input together (Fleet.advance), publish."""
+        if self._due:
+            due, self._due = list(self._due), {}
+            self._publish_all(self.fleet.advance(due))
+
+    def _publish_all(self, estimates: dict[str, list]) -> None:
+        for vehicle, of_vehicle in estimates.items():
+            self._publish(vehicle, of_vehicle)
+
+    def _publish(self, vehicle: str, estimates: list) -> None:
         engine = self.engines[vehicle]
-        estimates = engine.advance()
-        if not estimates:
-            return
         self._last_estimate[vehicle] = estimates[-1]
         for est in estimates:
             if est.prediction_note:

@@ -180,3 +180,29 @@ def test_an_engine_alone_and_in_a_fleet_of_one_agree(flight):
         feed(engine, kind, m)
         got += engine.advance()  # (a fleet's engine steps alone too)
     assert_same(got, alone([('/a', IV, seq)])['/a'][: len(got)])
+
+
+def test_a_replaced_engine_leaves_its_pool_and_the_others_step_on(flight):
+    """A node restarts a vehicle by adding a new engine of its name: the old engine's estimator
+    leaves the pool, as its own, and the other vehicle's estimates are those it gets alone."""
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)[:1200]
+    fleet = Fleet()
+    for name in ('/a', '/b'):
+        fleet.add(VehicleEngine(IV, name=name))
+    out = []
+    for k, (kind, m) in enumerate(seq):
+        for engine in list(fleet.engines.values()):
+            feed(engine, kind, m)
+        if k == 600:
+            old = fleet.engines['/b']
+            kept = old.estimator.zeta_hat[0].copy()
+            fleet.add(VehicleEngine(IV, name='/b'))
+            assert old.fleet is None and not isinstance(old.estimator, PooledEstimator)
+            np.testing.assert_array_equal(old.estimator.zeta_hat[0], kept)
+            assert fleet.engines['/a'].estimator.pool.keys == ['/a']
+        out += fleet.advance().get('/a', [])
+    assert_same(out, alone([('/a', IV, seq)])['/a'][: len(out)])
+    assert len(out) > 700
+    b = fleet.engines['/b']
+    assert b.started and b.estimator.pool is fleet.engines['/a'].estimator.pool

@@ -246,6 +246,12 @@ SETTINGS: dict[str, Setting] = {s.name: s for s in (
             items=(0.0, 1.0), open_high=True, target='estimator.sm_exponents'),
     Setting('reference_timeout', 0.25, 'odometry lead (s) after which a missing newer reference '
             'is held', range=(0.0, 60.0), target='engine.reference_timeout'),
+    Setting('reference_wait', 'due', 'when a step waits for a newer reference: due, only once '
+            'the next reference is due (0.9 of the reference interval after the last; one that '
+            'comes earlier applies from the step after it arrives); stamps, until a reference '
+            'at or after the step has come (the estimates depend on the stamps alone, at up to '
+            'one reference interval of latency)', choices=('due', 'stamps'),
+            target='engine.reference_wait'),
     Setting('max_gap', 1.0, 'odometry gap (s) treated as a time jump: the estimator '
             're-initialises', range=(0.001, 3600.0), target='engine.max_gap'),
     Setting('world_frame', '', 'required header.frame_id of odom and reference; empty: the first '

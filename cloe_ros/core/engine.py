@@ -14,10 +14,15 @@ rate the grid falls on the samples). The step ``t_k -> t_k+1`` runs as soon as
 * a reference stamped at or after ``t_k+1`` has arrived (so every reference up to ``t_k+1`` is
   known; the step uses the latest one at or before ``t_k+1``, the reference of the measurement's
   time), or the odometry is ``reference_timeout`` ahead of ``t_k+1`` (a stopped or slow reference
-  stream is held).
+  stream is held). With ``reference_wait`` 'due' (the default) a step also runs when no newer
+  reference is due by ``t_k+1``: the next one is due ``REFERENCE_DUE`` (0.9) of the stream's
+  interval after the last. So between the samples of a 10 Hz reference stream the steps follow
+  the 100 Hz odometry at once, instead of waiting up to 100 ms for the next reference.
 
 Each input topic must arrive in stamp order (DDS keeps per-publisher order; bags are read in
-order), so the estimates depend on the stamps alone, not on how the two topics interleave.
+order). With ``reference_wait`` 'stamps' the estimates then depend on the stamps alone, not on how
+the two topics interleave; with 'due' too, but for a reference that comes more than a tenth of an
+interval early and after the odometry of its stamp: it applies from the next step instead.
 
 Rejected inputs, never fed to the estimator, counted per reason: non-finite values, a quaternion
 far from unit norm, values no quadrotor in a local world frame reaches (beyond ``MAX_POSITION``,
@@ -99,6 +104,10 @@ MAX_TILT = math.radians(80.0)  # roll and pitch: the model linearises about hove
 #: Reference and plan quaternions are normalised before their yaw is taken, but for those of unit
 #: norm to round-off: dividing by 1 - 1e-16 would only add round-off to the yaw.
 ROUNDOFF = 1e-12
+#: With ``reference_wait`` 'due': the share of the reference stream's interval after the last
+#: reference from which the next one is due, and a step waits for it (a stream's jitter may
+#: bring a reference up to a tenth of an interval early).
+REFERENCE_DUE = 0.9
 #: References held aside at most (100 s at 100 Hz), waiting for the odometry to follow them.
 MAX_HELD_REFERENCES = 10_000
 
@@ -112,6 +121,9 @@ class EngineConfig:
         estimator: Algorithm and gains.
         reference_timeout: How far (s) the odometry may run ahead of a step before the last
             reference is held without waiting for a newer one.
+        reference_wait: ``'due'``: a step waits for a newer reference only once one is due,
+            ``REFERENCE_DUE`` of the reference stream's interval after the last one;
+            ``'stamps'``: until a reference at or after the step has arrived.
         max_gap: Odometry gap (s) treated as a time jump, forwards or backwards.
         world_frame: Required ``header.frame_id``; empty: the first frame seen, then that one.
         quaternion_tolerance: Largest accepted ``| ||q|| - 1 |``.
@@ -124,6 +136,7 @@ class EngineConfig:
     rate: float = default('rate')
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     reference_timeout: float = default('reference_timeout')
+    reference_wait: str = default('reference_wait')
     max_gap: float = default('max_gap')
     world_frame: str = default('world_frame')
     quaternion_tolerance: float = 0.1
@@ -850,10 +863,15 @@ class VehicleEngine:
         return r
 
     def _reference_complete(self, t_ns: int) -> bool:
-        """Every reference stamped up to ``t_ns`` has arrived, or the odometry is
-        ``reference_timeout`` ahead of it (the last reference is then held)."""
+        """Every reference stamped up to ``t_ns`` has arrived (with ``reference_wait`` 'due':
+        or the next one is not due by ``t_ns``), or the odometry is ``reference_timeout`` ahead
+        of it (the last reference is then held)."""
         if self._refs and self._refs[-1][0] >= t_ns:
             return True
+        interval = self._ref_interval_ns
+        if (self.config.reference_wait == 'due' and interval is not None and self._refs
+                and t_ns < self._refs[-1][0] + REFERENCE_DUE * interval):
+            return True  # (the next reference is not due yet)
         timeout = round(self.config.reference_timeout * NS)
         return bool(self._odom) and self._odom[-1][0] >= t_ns + timeout
 

@@ -126,8 +126,10 @@ class ErrorCovariance:
     def restart(self) -> None:
         """A new estimator on new data (a time or position jump): the differences start over,
         the statistics are kept."""
-        self._z: list[np.ndarray] = []  # the last four measurements, newest first
-        self._zeta_hat: list[np.ndarray] = []
+        # the last four measurements and estimates, newest first (rows); _filled of them so far
+        self._z = np.zeros((len(D3), N_STATES))
+        self._zeta_hat = np.zeros((len(D3), N_STATES))
+        self._filled = 0
 
     def _weight(self, count: int) -> float:
         return max(1.0 / count, self.alpha)
@@ -138,14 +140,14 @@ class ErrorCovariance:
         e = measured - zeta_hat
         self.count += 1
         self.second_moment += self._weight(self.count) * (e * e - self.second_moment)
-        self._z.insert(0, np.array(measured, dtype=float))
-        self._zeta_hat.insert(0, np.array(zeta_hat, dtype=float))
-        if len(self._z) > len(D3):
-            self._z.pop()
-            self._zeta_hat.pop()
-        if len(self._z) == len(D3):
-            d3z = D3 @ np.array(self._z)
-            d3h = D3 @ np.array(self._zeta_hat)
+        z, h = self._z, self._zeta_hat
+        z[1:] = z[:-1]
+        h[1:] = h[:-1]
+        z[0], h[0] = measured, zeta_hat
+        self._filled = min(self._filled + 1, len(D3))
+        if self._filled == len(D3):
+            d3z = D3 @ z
+            d3h = D3 @ h
             rho = 1.0 / (1.0 + self.step * np.maximum(gain_l, 0.0))
             self.count_d3 += 1
             w = self._weight(self.count_d3)

@@ -436,7 +436,7 @@ class VehicleEngine:
             ('velocity', v, MAX_SPEED, 'm/s'),
             ('angular rate', w, MAX_RATE, 'rad/s'),
         ):
-            largest = float(np.max(np.abs(values)))
+            largest = max(map(abs, values.tolist()))  # (3 values: faster than numpy's max)
             if largest > bound:
                 return f'{name} beyond {bound:g} {unit}', f'{largest:.6g} {unit}'
         roll, pitch = roll_pitch_one(q)
@@ -526,8 +526,8 @@ class VehicleEngine:
             return
         gaps = self._gaps
         gaps.append(dt)
-        shortest = min(gaps)
-        short = sorted(g for g in gaps if g <= 2 * shortest)
+        limit = 2 * min(gaps)
+        short = sorted([g for g in gaps if g <= limit])
         waiting = self._gaps_waiting
         if len(short) < MISSING_BASIS:
             if len(waiting) < MAX_GAPS_WAITING:

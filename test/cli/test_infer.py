@@ -25,9 +25,10 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from cloe_ros.cli.main import main
+from cloe_ros.core.fleet import EstimatorPool
 from cloe_ros.core.model import unstable_blocks
 from cloe_ros.core.samples import PoseSample
-from cloe_ros.io import messages
+from cloe_ros.io import cdr, messages
 from cloe_ros.io.config import DEFAULTS
 from cloe_ros.io.outputs import PARAMETER_LABELS
 from cloe_ros.io.reader import BagReader
@@ -845,3 +846,57 @@ def test_many_bags_refuse_a_used_folder_and_shared_names(sim_bag, tmp_path, caps
                  sim_bag, sim_bag, '-o', tmp_path / 'new', '-q')  # fmt: skip
     assert_error(capsys, '--jobs must be >= 0 (0: one per core), got -1',
                  sim_bag, '-o', tmp_path / 'new', '-j', '-1')  # fmt: skip
+
+
+def _moved_bag(sim_bag: Path, path: Path, names: dict[str, tuple[int, float]]) -> Path:
+    """The flight of ``sim_bag`` under each namespace of ``names``, shifted by (ns, m in x)."""
+    codecs = {'/odom': (messages.decode_odometry, cdr.encode_odometry),
+              '/reference': (messages.decode_pose_stamped, cdr.encode_pose_stamped)}  # fmt: skip
+    with BagReader(sim_bag) as reader, BagWriter(path) as writer:
+        for ns in names:
+            for name in codecs:
+                writer.add_topic(ns + name, reader.topics[name].msgtype)
+        for topic, t, raw in reader.messages(list(codecs)):
+            decode, encode = codecs[topic]
+            for ns, (shift, dx) in names.items():
+                m = decode(raw)
+                m = dataclasses.replace(
+                    m, stamp_ns=m.stamp_ns + shift, position=m.position + np.array([dx, 0, 0])
+                )
+                writer.write(ns + topic, t + shift, encode(m))
+    return path
+
+
+def test_the_vehicles_of_a_bag_step_together_as_each_alone(sim_bag, tmp_path, capsys,
+                                                          monkeypatch):  # fmt: skip
+    """Three vehicles in one bag (one 0.37 s later and 2 m away, one 1.1 s later): their
+    estimators step together, batched, and each vehicle's outputs are those of a bag of its own."""
+    sizes = []
+    step = EstimatorPool.step
+
+    def counted(self, keys, *args):
+        sizes.append(len(keys))
+        return step(self, keys, *args)
+
+    shifts = {'/uav1': (0, 0.0), '/uav2': (370_000_000, 2.0), '/uav3': (1_100_000_000, 0.0)}
+    together = _moved_bag(sim_bag, tmp_path / 'together', shifts)
+    monkeypatch.setattr(EstimatorPool, 'step', counted)
+    status, _, err = run_infer(capsys, together, '-o', tmp_path / 'out', '-q')
+    assert status == 0, err
+    assert sizes.count(3) > 1000
+    monkeypatch.setattr(EstimatorPool, 'step', step)
+    for ns, shift in shifts.items():
+        alone = _moved_bag(sim_bag, tmp_path / f'alone{ns[1:]}', {ns: shift})
+        status, _, err = run_infer(capsys, alone, '-o', tmp_path / f'out{ns[1:]}', '-q')
+        assert status == 0, err
+        for topic in ('/cloe/state', '/cloe/parameters'):
+            got = decoded(tmp_path / 'out', ns + topic)
+            want = decoded(tmp_path / f'out{ns[1:]}', ns + topic)
+            assert len(got) == len(want) > 10
+            if topic == '/cloe/state':
+                assert [stamp(m.header) for m in got] == [stamp(m.header) for m in want]
+                np.testing.assert_allclose(odometry_arrays(got)[1], odometry_arrays(want)[1],
+                                           rtol=1e-9, atol=1e-9)  # fmt: skip
+            else:
+                np.testing.assert_allclose([m.data for m in got], [m.data for m in want],
+                                           rtol=1e-9, atol=1e-9)  # fmt: skip

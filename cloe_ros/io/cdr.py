@@ -218,6 +218,10 @@ class _Writer:
         self.align(8)
         self.buf += np.ascontiguousarray(values, dtype='<f8').tobytes()
 
+    def pack(self, align: int, fmt: struct.Struct, *values) -> None:
+        self.align(align)
+        self.buf += fmt.pack(*values)
+
 
 _ZEROS36 = np.zeros(36)
 
@@ -360,3 +364,61 @@ class NamedValuesLayout:
         buf[4:12] = _time_bytes(stamp_ns)
         np.frombuffer(buf, dtype=np.uint8)[self._bytes] = values.view(np.uint8)
         return bytes(buf)
+
+
+# ------------------------------------------------------------- visualization_msgs/MarkerArray
+
+MARKER_ADD, MARKER_SPHERE, MARKER_LINE_STRIP = 0, 2, 4
+_MARKER_KIND = struct.Struct('<iii')  # id, type, action
+_COLOR_LIFETIME = struct.Struct('<4fiI?')  # color (RGBA), lifetime (sec, nanosec), frame_locked
+#: A marker's fields after its points, all empty: colors, texture_resource, texture (header stamp
+#: 0, frame '', format '', no data), uv_coordinates, text, mesh_resource, mesh_file ('', no
+#: data), mesh_use_embedded_materials false. Every one is 4-aligned, so the same bytes follow
+#: any points.
+_MARKER_TAIL = struct.pack(
+    '<I' 'I1s3x' 'iI' 'I1s3x' 'I1s3x' 'I' 'I' 'I1s3x' 'I1s3x' 'I1s3x' 'I' '?',
+    0, 1, b'', 0, 0, 1, b'', 1, b'', 0, 0, 1, b'', 1, b'', 1, b'', 0, False,
+)
+
+
+def _marker(w: _Writer, head: bytes, ns: str, marker_id: int, kind: int, position, scale: float,
+            rgba, lifetime: tuple[int, int], points: np.ndarray | None) -> None:  # fmt: skip
+    """One ``visualization_msgs/msg/Marker`` (action ADD, identity orientation) into ``w``;
+    ``head`` is its header's bytes (stamp and frame), written 4-aligned."""
+    w.align(4)
+    w.buf += head
+    w.string(ns)
+    w.pack(4, _MARKER_KIND, marker_id, kind, MARKER_ADD)
+    p = position
+    w.doubles((p[0], p[1], p[2], 0.0, 0.0, 0.0, 1.0, scale, scale, scale))  # pose, scale
+    w.pack(4, _COLOR_LIFETIME, *rgba, *lifetime, False)
+    n = 0 if points is None else len(points)
+    w.uint32(n)
+    if n:
+        w.doubles(points)
+    w.align(4)
+    w.buf += _MARKER_TAIL
+
+
+def encode_prediction_markers(
+    stamp_ns: int, frame_id: str, positions: np.ndarray, radii: np.ndarray, lifetime_ns: int,
+    every: int = 5,
+) -> bytes:  # fmt: skip
+    """CDR of the ``visualization_msgs/msg/MarkerArray`` of
+    :func:`cloe_ros.io.messages.encode_prediction_markers`: a line strip of ``positions`` (K, 3)
+    and a sphere of diameter ``2 radii[k]`` at every ``every``-th pose."""
+    head = _Writer()
+    head.stamp(stamp_ns)
+    head.string(frame_id)
+    head = bytes(head.buf[4:])  # (4-aligned at its start, so it is the same bytes anywhere)
+    lifetime = divmod(int(lifetime_ns), NS)
+    positions = np.asarray(positions, dtype=float)
+    spheres = range(every - 1, len(positions), every)
+    w = _Writer()
+    w.uint32(1 + len(spheres))
+    _marker(w, head, 'prediction', 0, MARKER_LINE_STRIP, (0.0, 0.0, 0.0), 0.02,
+            (0.1, 0.5, 1.0, 0.9), lifetime, positions)  # fmt: skip
+    for i, k in enumerate(spheres, start=1):
+        _marker(w, head, 'prediction_radius', i, MARKER_SPHERE, positions[k],
+                2.0 * float(radii[k]), (0.1, 0.5, 1.0, 0.15), lifetime, None)  # fmt: skip
+    return bytes(w.buf)

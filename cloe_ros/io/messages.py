@@ -129,14 +129,6 @@ def encode_odometry(sample: OdometrySample) -> bytes:
     return cdr.encode_odometry(sample)
 
 
-def _pose(position: np.ndarray, orientation: np.ndarray):
-    p, q = position, orientation
-    return Pose(
-        position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-        orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
-    )
-
-
 def encode_pose_stamped(sample: PoseSample) -> bytes:
     """CDR of a ``geometry_msgs/msg/PoseStamped``."""
     return cdr.encode_pose_stamped(sample)
@@ -219,26 +211,6 @@ def decode_named_values(raw: bytes | memoryview) -> tuple[int, str, list[str], n
     return stamp_to_ns(msg.stamp), msg.node, names, values
 
 
-def _marker(stamp_ns: int, frame_id: str, ns: str, marker_id: int, kind: int, position,
-            scale: float, rgba, lifetime_ns: int, points=()) -> object:  # fmt: skip
-    sec, nanosec = divmod(int(lifetime_ns), 1_000_000_000)
-    return Marker(
-        header=Header(stamp=ns_to_time(stamp_ns), frame_id=frame_id),
-        ns=ns, id=int(marker_id), type=kind, action=Marker.ADD,
-        pose=_pose(position, np.array([0.0, 0.0, 0.0, 1.0])),
-        scale=Vector3(x=float(scale), y=float(scale), z=float(scale)),
-        color=ColorRGBA(r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]), a=float(rgba[3])),
-        lifetime=Duration(sec=sec, nanosec=nanosec), frame_locked=False,
-        points=[Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in points], colors=[],
-        texture_resource='', texture=CompressedImage(header=Header(stamp=Time(sec=0, nanosec=0),
-                                                                   frame_id=''),
-                                                     format='', data=np.zeros(0, np.uint8)),
-        uv_coordinates=[], text='', mesh_resource='',
-        mesh_file=MeshFile(filename='', data=np.zeros(0, np.uint8)),
-        mesh_use_embedded_materials=False,
-    )  # fmt: skip
-
-
 def encode_prediction_markers(
     stamp_ns: int, frame_id: str, positions: np.ndarray, radii: np.ndarray, lifetime_ns: int,
     every: int = 5,
@@ -249,14 +221,9 @@ def encode_prediction_markers(
 
     Every marker is stamped with the prediction's issue time (a future stamp would make RViz
     look up a transform that does not exist yet) and lives ``lifetime_ns``, so a stale
-    prediction disappears."""
-    markers = [_marker(stamp_ns, frame_id, 'prediction', 0, Marker.LINE_STRIP, np.zeros(3), 0.02,
-                       (0.1, 0.5, 1.0, 0.9), lifetime_ns, positions)]  # fmt: skip
-    for i, k in enumerate(range(every - 1, len(positions), every), start=1):
-        markers.append(_marker(stamp_ns, frame_id, 'prediction_radius', i, Marker.SPHERE,
-                               positions[k], 2.0 * float(radii[k]), (0.1, 0.5, 1.0, 0.15),
-                               lifetime_ns))  # fmt: skip
-    return bytes(TYPESTORE.serialize_cdr(MarkerArray(markers=markers), MARKER_ARRAY))
+    prediction disappears. Written straight into CDR (:func:`cloe_ros.io.cdr.
+    encode_prediction_markers`), the bytes rosbags writes."""
+    return cdr.encode_prediction_markers(stamp_ns, frame_id, positions, radii, lifetime_ns, every)
 
 
 def encode_clock(ns: int) -> bytes:

@@ -155,6 +155,47 @@ def test_named_values_are_rosbags_bytes(source):
         cdr.NamedValuesLayout(source, names).encode(0, np.zeros(2))
 
 
+def _general_markers(stamp_ns, frame_id, positions, radii, lifetime_ns, every=5):
+    """The prediction markers built as rosbags message objects (the general codec)."""
+    m = messages
+    sec, nanosec = divmod(lifetime_ns, 1_000_000_000)
+
+    def marker(ns, marker_id, kind, position, scale, rgba, points=()):
+        return m.Marker(
+            header=m.Header(stamp=m.ns_to_time(stamp_ns), frame_id=frame_id), ns=ns,
+            id=marker_id, type=kind, action=0, pose=_general_pose(position, (0, 0, 0, 1.0)),
+            scale=m.Vector3(x=scale, y=scale, z=scale), color=m.ColorRGBA(*rgba),
+            lifetime=m.Duration(sec=sec, nanosec=nanosec), frame_locked=False,
+            points=[m.Point(*map(float, p)) for p in points], colors=[], texture_resource='',
+            texture=m.CompressedImage(header=m.Header(stamp=m.Time(sec=0, nanosec=0),
+                                                      frame_id=''),
+                                      format='', data=np.zeros(0, np.uint8)),
+            uv_coordinates=[], text='', mesh_resource='',
+            mesh_file=m.MeshFile(filename='', data=np.zeros(0, np.uint8)),
+            mesh_use_embedded_materials=False,
+        )  # fmt: skip
+
+    markers = [marker('prediction', 0, 4, np.zeros(3), 0.02, (0.1, 0.5, 1.0, 0.9), positions)]
+    for i, k in enumerate(range(every - 1, len(positions), every), start=1):
+        markers.append(marker('prediction_radius', i, 2, positions[k], 2.0 * float(radii[k]),
+                              (0.1, 0.5, 1.0, 0.15)))  # fmt: skip
+    return bytes(TYPESTORE.serialize_cdr(m.MarkerArray(markers=markers), messages.MARKER_ARRAY))
+
+
+@pytest.mark.parametrize('frame', ['world', 'map', 'odom_7', ''])
+@pytest.mark.parametrize('poses', [0, 1, 4, 5, 12, 30])
+def test_prediction_markers_are_rosbags_bytes(frame, poses):
+    rng = np.random.default_rng(poses)
+    positions, radii = rng.normal(size=(poses, 3)), rng.random(poses)
+    stamp = 1_700_000_000_123_456_789
+    raw = messages.encode_prediction_markers(stamp, frame, positions, radii, 1_500_000_000)
+    assert raw == _general_markers(stamp, frame, positions, radii, 1_500_000_000)
+    back = TYPESTORE.deserialize_cdr(raw, messages.MARKER_ARRAY).markers
+    assert len(back) == 1 + poses // 5
+    points = np.array([[p.x, p.y, p.z] for p in back[0].points]).reshape(-1, 3)
+    np.testing.assert_array_equal(points, positions)
+
+
 def _general_pose(p, q):
     return messages.Pose(position=messages.Point(*map(float, p)),
                          orientation=messages.Quaternion(*map(float, q)))  # fmt: skip

@@ -119,10 +119,18 @@ class EstimatorPool:
 
 
 class Fleet:
-    """The engines of many vehicles, their estimators batched (see the module docstring)."""
+    """The engines of many vehicles, their estimators batched (see the module docstring).
 
-    def __init__(self) -> None:
+    Args:
+        pooled: Keep the estimators as rows of shared ones. False: each vehicle keeps its own
+            and steps alone (for callers that step one vehicle at a time: a row stepped without
+            the others of its pool is copied out and back, which costs more than its step).
+
+    """
+
+    def __init__(self, pooled: bool = True) -> None:
         self.engines: dict[str, VehicleEngine] = {}
+        self.pooled = pooled
         self._pools: list[EstimatorPool] = []
 
     def add(self, engine: VehicleEngine) -> VehicleEngine:
@@ -145,8 +153,8 @@ class Fleet:
     def adopt(self, engine: VehicleEngine, est: Rows) -> PooledEstimator | Rows:
         """Where ``engine``'s newly started estimator lives: a row of the pool whose settings
         it shares (a new pool if none)."""
-        if not isinstance(est, Rows):
-            return est  # (an estimator of its own kind, e.g. a test's: stepped alone)
+        if not (self.pooled and isinstance(est, Rows)):
+            return est  # (unpooled, or an estimator of its own kind, e.g. a test's: alone)
         self._pools = [p for p in self._pools if p.keys]
         for pool in self._pools:
             if pool.accepts(est):

@@ -6,10 +6,11 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
   and, optionally, ``<ns>/reference_plan`` (nav_msgs/Path, planned future references), as raw CDR
   decoded by the same code as ``cloe infer``;
 * runs a :class:`cloe_ros.core.engine.VehicleEngine` in fixed steps of message time (header
-  stamps; never the wall clock). The engines are one :class:`cloe_ros.core.fleet.Fleet`: every
-  ``batch_period`` of wall time the vehicles with new input step together, one batched estimator
-  call per grid step (``batch_period`` 0: each vehicle at each of its messages; the estimates are
-  the same either way);
+  stamps; never the wall clock). The engines are one :class:`cloe_ros.core.fleet.Fleet`: the
+  vehicles with new input step together, one batched estimator call per grid step, as soon as
+  every vehicle has new input and at the latest every ``batch_period`` of wall time
+  (``batch_period`` 0: each vehicle alone at each of its messages; the estimates are the same
+  either way);
 * publishes ``<ns>/<output_ns>/state`` (nav_msgs/Odometry) every step,
   ``<ns>/<output_ns>/parameters`` (std_msgs/Float64MultiArray, labelled) at ``parameters_rate`` and
   ``<ns>/<output_ns>/prediction`` (nav_msgs/Path, poses at future stamps) at ``prediction_rate``;
@@ -92,10 +93,14 @@ class InferenceNode(Node):
         depth = declared['qos_depth']
         in_qos = qos(reliable=reliable, depth=depth)
         out_qos = qos(reliable=True, depth=depth)
-        self.fleet = Fleet()  # every vehicle's engine, their estimators batched
+        self.batch_period = declared['batch_period']
+        # every vehicle's engine, their estimators batched (unless each steps on its messages)
+        self.fleet = Fleet(pooled=self.batch_period > 0)
         self.engines: dict[str, VehicleEngine] = self.fleet.engines
-        # the vehicles with input since the last batch (a dict: in order of arrival)
+        # the vehicles with input since the last batch (a dict: in order of arrival), and the
+        # inputs since then
         self._due: dict[str, None] = {}
+        self._inputs = 0
         self.encoders: dict[str, OutputEncoder] = {}
         self.publishers_: dict[str, object] = {}
         self.malformed: dict[str, int] = {}
@@ -113,7 +118,6 @@ class InferenceNode(Node):
             if self._ours(self._namespace(v)):  # (a listed vehicle of another shard: not ours)
                 self._add_vehicle(v)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.batch_period = declared['batch_period']
         self._batch_timer = (
             self.create_timer(self.batch_period, self._step_due, clock=steady)
             if self.batch_period > 0 else None
@@ -460,9 +464,16 @@ class InferenceNode(Node):
             self._publish_all(self.fleet.advance([vehicle]))
         else:
             self._due[vehicle] = None
+            self._inputs += 1
+            # a batch at once when every vehicle has new input (or twice as many inputs came as
+            # there are vehicles: some are silent), so what waits for the timer stays bounded
+            # when the executor serves the inputs before the timer (a node behind its inputs)
+            if len(self._due) == len(self.engines) or self._inputs >= 2 * len(self.engines):
+                self._step_due()
 
     def _step_due(self) -> None:
         """The batch: step every vehicle with new input together (Fleet.advance), publish."""
+        self._inputs = 0
         if self._due:
             due, self._due = list(self._due), {}
             self._publish_all(self.fleet.advance(due))

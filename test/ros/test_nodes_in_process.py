@@ -21,7 +21,8 @@ from ros_helpers import spin_until
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from cloe_ros.core.engine import VehicleEngine
+from cloe_ros.core.engine import NS, VehicleEngine
+from cloe_ros.core.fleet import PooledEstimator
 from cloe_ros.core.kinematics import state_to_odometry
 from cloe_ros.core.model import PARAMETER_NAMES
 from cloe_ros.core.samples import OdometrySample
@@ -629,3 +630,54 @@ def test_each_simulated_vehicle_has_its_own_body_frame(context):
         ex.shutdown()
         for n in (sim, col.node):
             n.destroy_node()
+
+
+def test_vehicles_step_in_batches_as_each_alone(context, flight):
+    """Three vehicles: a batch runs as soon as each has new input (the batch timer, never
+    spun here, is only the bound for silent ones), with one batched step per grid step; once
+    one falls silent the others step after twice as many inputs as there are vehicles. Every
+    state equals that of an engine fed alone; batch_period 0 keeps one estimator per vehicle."""
+    t, zeta, r = flight
+    names = ['/a', '/b', '/c']
+    overrides = [Parameter('vehicles', value=names)]
+    inf = InferenceNode(context=context, parameter_overrides=overrides)
+    alone = InferenceNode(context=context, parameter_overrides=[
+        *overrides, Parameter('batch_period', value=0.0)])  # fmt: skip
+    try:
+        replicas = {v: VehicleEngine(inf.engine_config, name=v) for v in names}
+        expected = {v: [] for v in names}
+        for k in range(600):
+            stamp = T0 + round(t[k] * 1e9)
+            for i, v in enumerate(names):
+                if v == '/c' and k >= 300:
+                    continue  # (falls silent)
+                shifted = zeta[k].copy()
+                shifted[0] += i  # (1 m apart)
+                raw_odom = _odom_bytes(stamp, shifted)
+                raw_ref = _ref_bytes(stamp, r[k] + np.array([i, 0, 0, 0]))
+                for node in (inf, alone):
+                    node._reference_callback(v)(raw_ref)
+                    node._odometry_callback(v)(raw_odom)
+                replicas[v].add_reference(messages.decode_pose_stamped(raw_ref))
+                replicas[v].add_odometry(messages.decode_odometry(raw_odom))
+                expected[v] += replicas[v].advance()
+            if k in (100, 299):
+                # a batch ran once every vehicle had new input: what came after it waits
+                assert len(inf._due) < len(names)
+                for v in names:
+                    assert inf._last_estimate[v].stamp_ns >= stamp - NS // 100
+            if k == 310:  # (with /c silent: a batch at least every six inputs)
+                assert inf._last_estimate['/a'].stamp_ns >= stamp - 2 * NS // 100
+        for node in (inf, alone):
+            for v in names:
+                last = node._last_estimate[v]
+                want = next(e for e in expected[v] if e.stamp_ns == last.stamp_ns)
+                np.testing.assert_allclose(last.zeta_hat, want.zeta_hat, rtol=1e-9, atol=1e-12)
+                np.testing.assert_allclose(last.theta_hat, want.theta_hat, rtol=1e-9, atol=1e-12)
+        pool = inf.engines['/a'].estimator.pool
+        assert pool is inf.engines['/b'].estimator.pool and len(pool.keys) == 3
+        assert not any(isinstance(e.estimator, PooledEstimator) for e in alone.engines.values())
+        assert all(e.started for e in alone.engines.values())
+    finally:
+        inf.destroy_node()
+        alone.destroy_node()

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from cloe_ros.core.engine import VehicleEngine
+from cloe_ros.core.fleet import Fleet
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs
 from cloe_ros.io.dataset import feed, input_routes, vehicle_namespaces
@@ -28,12 +29,15 @@ def bags() -> list[Path]:
 
 def golden_outputs(bag: Path) -> dict[str, np.ndarray]:
     """Every vehicle's estimates of ``bag`` with the default settings, fed message by message in
-    the bag's order as ``cloe infer`` feeds them (arrays keyed ``<what>`` for one vehicle)."""
+    the bag's order as ``cloe infer`` feeds them, stepped by a fleet (arrays keyed ``<what>`` for
+    one vehicle)."""
     engine_config, _ = build_configs({})
     with BagReader(bag) as reader:
         topics = {name: info.msgtype for name, info in reader.topics.items()}
         (vehicle,) = vehicle_namespaces(topics)
-        engine = VehicleEngine(engine_config, name=vehicle)
+        # (in a fleet, its estimator a row of a pool, as the node and cloe infer run it)
+        fleet = Fleet()
+        engine = fleet.add(VehicleEngine(engine_config, name=vehicle))
         route = input_routes(topics, [vehicle])
         estimates = []
         for topic, _, raw in reader.messages(set(route)):
@@ -41,7 +45,7 @@ def golden_outputs(bag: Path) -> dict[str, np.ndarray]:
                 feed(engine, route[topic][1], raw)
             except messages.MessageError:
                 continue
-            estimates.extend(engine.advance())
+            estimates.extend(fleet.advance().get(vehicle, []))
         estimates.extend(engine.finish())
     return summarise(estimates)
 

@@ -2,7 +2,8 @@
 
 :func:`replay_flights` feeds every vehicle's ``odom``, ``reference`` (and ``reference_plan``)
 messages, decoded by :mod:`cloe_ros.io.messages`, to a :class:`~cloe_ros.core.engine.
-VehicleEngine` per vehicle in the bag's order, exactly as ``cloe infer`` and the node do, and keeps
+VehicleEngine` per vehicle (one :class:`~cloe_ros.core.fleet.Fleet`) in the bag's order, exactly
+as ``cloe infer`` and the node do, and keeps
 what the corpus evaluation scores (:class:`~cloe_ros.core.evaluation.FlightRecord`): the
 published predictions and their radii at the horizons, the state and the trust at each issue
 time, and the odometry and references that were received.
@@ -16,6 +17,7 @@ import numpy as np
 
 from cloe_ros.core.engine import NS, Estimate, VehicleEngine
 from cloe_ros.core.evaluation import HORIZONS, FlightRecord
+from cloe_ros.core.fleet import Fleet
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs
 from cloe_ros.io.dataset import ODOM, REFERENCE, feed, input_routes, vehicle_namespaces
@@ -92,12 +94,24 @@ def replay_flights(
         vehicles = vehicle_namespaces(topics)
         if not vehicles:
             raise BagError(f'{path}: no vehicle with <ns>/{ODOM} and <ns>/{REFERENCE} topics')
-        engines = {v: VehicleEngine(engine_config, name=v) for v in vehicles}
+        fleet = Fleet()  # (stepped in batches of one grid step of recording time, as infer)
+        engines = {v: fleet.add(VehicleEngine(engine_config, name=v)) for v in vehicles}
         collectors = {v: _Collector(engine_config.prediction.step, horizons) for v in vehicles}
         route = input_routes(topics, vehicles)
-        for topic, _, raw in reader.messages(set(route)):
+        due: dict[str, None] = {}
+        batch_end = None
+
+        def step_due() -> None:
+            for v, estimates in fleet.advance(list(due)).items():
+                collectors[v].take(estimates)
+            due.clear()
+
+        for topic, log_ns, raw in reader.messages(set(route)):
             vehicle, kind = route[topic]
             engine, col = engines[vehicle], collectors[vehicle]
+            if batch_end is not None and log_ns >= batch_end:
+                step_due()
+                batch_end = None
             try:
                 sample, rejected = feed(engine, kind, raw)
             except messages.MessageError:
@@ -105,7 +119,10 @@ def replay_flights(
             if rejected is None and kind in (ODOM, REFERENCE):
                 received = col.odom if kind == ODOM else col.refs
                 received.append((sample.stamp_ns, np.asarray(sample.position, float)))
-            col.take(engine.advance())
+            due[vehicle] = None
+            if batch_end is None:
+                batch_end = log_ns + engine_config.step_ns
+        step_due()
         for v in vehicles:
             collectors[v].take(engines[v].finish())
     several = len(vehicles) > 1

@@ -20,7 +20,7 @@ from cloe_ros.cli.outputs import check_folder, make_folder
 from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.cli.workers import worker_count
 from cloe_ros.core.engine import NS, VehicleEngine
-from cloe_ros.core.fleet import Fleet
+from cloe_ros.core.fleet import Fleet, RecordingBatches
 from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs, load_settings
@@ -122,8 +122,7 @@ def infer_bag(
         # the vehicles' engines as one fleet: their estimators step together (same estimates)
         fleet = Fleet()
         engines = {v: fleet.add(VehicleEngine(engine_config, name=v)) for v in found}
-        due: dict[str, None] = {}  # the vehicles with input since the last batch, in order
-        batch_end: int | None = None  # log time at which the batch is stepped
+        batches = RecordingBatches(fleet, engine_config.step_ns)
         # bag topics are absolute: the un-namespaced vehicle's outputs go to /<output_ns>/...
         encoders = {
             v: OutputEncoder(output_config, v or '/', engine_config.prediction.enabled)
@@ -159,12 +158,9 @@ def infer_bag(
                             writer.write(topic, stamp, data)
                             written[topic] += 1
 
-                def step_due():
-                    nonlocal batch_end
-                    for v, estimates in fleet.advance(list(due)).items():
-                        emit(v, estimates)
-                    due.clear()
-                    batch_end = None
+                def emit_all(estimates):
+                    for v, of_vehicle in estimates.items():
+                        emit(v, of_vehicle)
 
                 count = 0
                 received: Counter = Counter()
@@ -177,20 +173,17 @@ def infer_bag(
                         continue
                     received[topic] += 1
                     vehicle, kind = target
-                    if batch_end is not None and log_ns >= batch_end:
-                        step_due()  # (a grid step of recording time since the batch began)
+                    emit_all(batches.before(log_ns))
                     try:
                         feed(engines[vehicle], kind, raw)
                     except messages.MessageError:
                         malformed[vehicle] += 1
                         continue
-                    due[vehicle] = None
-                    if batch_end is None:
-                        batch_end = log_ns + engine_config.step_ns
+                    batches.fed(vehicle, log_ns)
                     count += 1
                     if progress is not None and count % 500 == 0:
                         progress('infer', (log_ns - reader.start_ns) / span)
-                step_due()
+                emit_all(batches.flush())
                 for v in found:
                     emit(v, engines[v].finish())
                 unusable = {

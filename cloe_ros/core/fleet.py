@@ -198,6 +198,34 @@ class Fleet:
         return {name: estimates for name, estimates in out.items() if estimates}
 
 
+class RecordingBatches:
+    """A fleet fed in recording order (a bag read by log time), stepped in batches: the
+    vehicles with input during ``span_ns`` of recording time (a grid step) step together.
+
+    Call :meth:`before` before feeding an input logged at ``log_ns`` (it returns the estimates of
+    the batch that input ends, per vehicle, or nothing), :meth:`fed` after feeding it, and
+    :meth:`flush` after the last one."""
+
+    def __init__(self, fleet: Fleet, span_ns: int) -> None:
+        self.fleet, self.span_ns = fleet, span_ns
+        self._due: dict[str, None] = {}  # the vehicles with input in this batch, in order
+        self._end: int | None = None  # log time at which this batch ends
+
+    def before(self, log_ns: int) -> dict[str, list[Estimate]]:
+        if self._end is None or log_ns < self._end:
+            return {}
+        return self.flush()
+
+    def fed(self, vehicle: str, log_ns: int) -> None:
+        self._due[vehicle] = None
+        if self._end is None:
+            self._end = log_ns + self.span_ns
+
+    def flush(self) -> dict[str, list[Estimate]]:
+        due, self._due, self._end = list(self._due), {}, None
+        return self.fleet.advance(due)
+
+
 def _tracked(tracked: list) -> np.ndarray | None:
     """The tracked channels of a batch (K, 4), None when every vehicle tracks every channel."""
     if all(t is None for t in tracked):

@@ -17,7 +17,7 @@ import numpy as np
 
 from cloe_ros.core.engine import NS, Estimate, VehicleEngine
 from cloe_ros.core.evaluation import HORIZONS, FlightRecord
-from cloe_ros.core.fleet import Fleet
+from cloe_ros.core.fleet import Fleet, RecordingBatches
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs
 from cloe_ros.io.dataset import ODOM, REFERENCE, feed, input_routes, vehicle_namespaces
@@ -98,20 +98,16 @@ def replay_flights(
         engines = {v: fleet.add(VehicleEngine(engine_config, name=v)) for v in vehicles}
         collectors = {v: _Collector(engine_config.prediction.step, horizons) for v in vehicles}
         route = input_routes(topics, vehicles)
-        due: dict[str, None] = {}
-        batch_end = None
+        batches = RecordingBatches(fleet, engine_config.step_ns)
 
-        def step_due() -> None:
-            for v, estimates in fleet.advance(list(due)).items():
-                collectors[v].take(estimates)
-            due.clear()
+        def take(estimates: dict[str, list[Estimate]]) -> None:
+            for v, of_vehicle in estimates.items():
+                collectors[v].take(of_vehicle)
 
         for topic, log_ns, raw in reader.messages(set(route)):
             vehicle, kind = route[topic]
             engine, col = engines[vehicle], collectors[vehicle]
-            if batch_end is not None and log_ns >= batch_end:
-                step_due()
-                batch_end = None
+            take(batches.before(log_ns))
             try:
                 sample, rejected = feed(engine, kind, raw)
             except messages.MessageError:
@@ -119,10 +115,8 @@ def replay_flights(
             if rejected is None and kind in (ODOM, REFERENCE):
                 received = col.odom if kind == ODOM else col.refs
                 received.append((sample.stamp_ns, np.asarray(sample.position, float)))
-            due[vehicle] = None
-            if batch_end is None:
-                batch_end = log_ns + engine_config.step_ns
-        step_due()
+            batches.fed(vehicle, log_ns)
+        take(batches.flush())
         for v in vehicles:
             collectors[v].take(engines[v].finish())
     several = len(vehicles) > 1

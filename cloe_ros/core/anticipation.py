@@ -64,6 +64,8 @@ CHANNEL_RATE = np.array([1, 5, 9, 11])
 POSITION = np.array([0, 4, 10])
 VELOCITY = np.array([1, 5, 11])
 POSITION_CHANNELS = np.array([0, 1, 3])
+#: The horizontal reference channels, fitted with one frequency by the ellipse intent.
+XY = np.array([0, 1])
 
 #: Candidates of the vehicle's path, in this order (see :class:`Anticipator`).
 CANDIDATES = ('model', 'turn', 'velocity', 'hold', 'centroid')
@@ -202,15 +204,34 @@ class History:
         """``column`` (a field name) interpolated at ``times`` (...,) for ``channels``:
         (..., len(channels)); NaN outside the held span."""
         t = self.ordered('t')
-        data = self.ordered(column)
-        out = np.full((*np.shape(times), len(channels)), np.nan)
+        times = np.asarray(times, float)
+        out = np.full((*times.shape, len(channels)), np.nan)
         if len(t) < 1:
             return out
-        times = np.asarray(times, float)
-        ok = (times >= t[0] - 1e-9) & (times <= t[-1] + 1e-9)
+        data = self.ordered(column)
+        low, high = t[0] - 1e-9, t[-1] + 1e-9
+        if times.size == 1:  # one time: its two rows, all channels at once
+            x = float(times.reshape(-1)[0])
+            if low <= x <= high:
+                out.reshape(-1, len(channels))[0] = _interp_row(t, data, x)[channels]
+            return out
         for j, c in enumerate(channels):
-            out[..., j] = np.where(ok, np.interp(times, t, data[:, c]), np.nan)
+            out[..., j] = np.interp(times, t, data[:, c])
+        out[~((times >= low) & (times <= high))] = np.nan
         return out
+
+
+def _interp_row(t: np.ndarray, data: np.ndarray, x: float) -> np.ndarray:
+    """The rows of ``data`` (T, C), sampled at the increasing ``t`` (T,), interpolated at ``x``
+    with the arithmetic of ``np.interp`` (the same values): a sample's own time, and the ends,
+    give the sample itself."""
+    j = int(np.searchsorted(t, x, side='right')) - 1
+    if j < 0:
+        return data[0]
+    if j >= len(t) - 1 or t[j] == x:
+        return data[j]
+    slope = (data[j + 1] - data[j]) / (t[j + 1] - t[j])
+    return slope * (x - t[j]) + data[j]
 
 
 # ------------------------------------------------------------------------------ intent
@@ -234,19 +255,32 @@ def harmonic_fit(
     the single-frequency fit ``c + a cos(w t) + b sin(w t)`` of least squared error, the
     frequency searched over ``omegas`` (W,) rad/s per column, or shared by every column when
     ``joint`` (a circle or an ellipse in x and y). Returns (K, C)."""
+    columns = np.arange(y.shape[1])
+    separate, shared = harmonic_fits(t, y, ahead, omegas, columns if joint else columns[:0])
+    return shared if joint else separate
+
+
+def harmonic_fits(
+    t: np.ndarray, y: np.ndarray, ahead: np.ndarray, omegas: np.ndarray, joint: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`harmonic_fit` of every column of ``y`` (K, C), and of the columns ``joint`` with
+    one frequency (K, len(joint)), from one least-squares solve per frequency."""
     wt = np.outer(omegas, t)  # (W, T)
     basis = np.stack([np.ones_like(wt), np.cos(wt), np.sin(wt)], axis=-1)  # (W, T, 3)
     basis_t = np.swapaxes(basis, 1, 2)  # (W, 3, T); matmul (BLAS), 3x einsum's speed here
     gram = basis_t @ basis + 1e-9 * np.eye(3)
     coef = np.linalg.solve(gram, basis_t @ y)  # (W, 3, C)
     resid = np.sum((basis @ coef - y[None]) ** 2, axis=1)  # (W, C)
-    if joint:
-        best = np.full(y.shape[1], int(np.argmin(resid.sum(axis=1))))
-    else:
-        best = np.argmin(resid, axis=0)
-    wa = np.outer(ahead, omegas[best])  # (K, C)
-    c = coef[best, :, np.arange(y.shape[1])]  # (C, 3)
-    return c[:, 0] + c[:, 1] * np.cos(wa) + c[:, 2] * np.sin(wa)
+
+    def extrapolate(best: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        wa = np.outer(ahead, omegas[best])  # (K, C)
+        c = coef[best, :, columns]  # (C, 3)
+        return c[:, 0] + c[:, 1] * np.cos(wa) + c[:, 2] * np.sin(wa)
+
+    columns = np.arange(y.shape[1])
+    separate = extrapolate(np.argmin(resid, axis=0), columns)
+    best = int(np.argmin(resid[:, joint].sum(axis=1))) if len(joint) else 0
+    return separate, extrapolate(np.full(len(joint), best), joint)
 
 
 def linear_fit(t: np.ndarray, y: np.ndarray, ahead: np.ndarray) -> np.ndarray:
@@ -290,9 +324,9 @@ class Intent:
             step = max(1, round(1.0 / (self.SUBSAMPLE_HZ * max(np.median(np.diff(t)), 1e-6))))
             ts, rs = t[::-1][::step][::-1], r[::-1][::step][::-1]  # (keeps the last sample)
             if len(ts) >= 10:
-                out[2] = harmonic_fit(ts, rs, self.ahead, self.OMEGAS)
+                out[2], joint = harmonic_fits(ts, rs, self.ahead, self.OMEGAS, XY)
                 out[3] = out[2]
-                out[3][:, :2] = harmonic_fit(ts, rs[:, :2], self.ahead, self.OMEGAS, joint=True)
+                out[3][:, :2] = joint
         return out
 
 
@@ -309,18 +343,21 @@ def simplex_weights(s: np.ndarray, allowed: np.ndarray, shrink: float = 0.1) -> 
     s = s + 1e-12 * (1.0 + diag.max(axis=1))[:, None, None] * np.eye(m)
     active = np.broadcast_to(allowed, (k, m)).copy()
     w = np.zeros((k, m))
+    todo = np.arange(k)  # the horizons whose active set changed (the others are solved)
     for _ in range(m):
         # solve on the active set (inactive rows and columns become the identity)
-        sa = np.where(active[:, :, None] & active[:, None, :], s, 0.0)
-        sa += np.where(active, 0.0, 1.0)[:, :, None] * np.eye(m)
-        x = np.linalg.solve(sa, active.astype(float)[..., None])[..., 0]
-        w = x / x.sum(axis=1, keepdims=True)
-        negative = active & (w < 0)
-        if not negative.any():
+        on = active[todo]
+        sa = np.where(on[:, :, None] & on[:, None, :], s[todo], 0.0)
+        sa += np.where(on, 0.0, 1.0)[:, :, None] * np.eye(m)
+        x = np.linalg.solve(sa, on.astype(float)[..., None])[..., 0]
+        w[todo] = x = x / x.sum(axis=1, keepdims=True)
+        negative = on & (x < 0)
+        again = negative.any(axis=1)
+        if not again.any():
             break
-        worst = np.argmin(np.where(negative, w, np.inf), axis=1)
-        rows = np.flatnonzero(negative.any(axis=1))
-        active[rows, worst[rows]] = False
+        worst = np.argmin(np.where(negative, x, np.inf), axis=1)
+        todo = todo[again]
+        active[todo, worst[again]] = False
     return np.where(active, np.clip(w, 0.0, None), 0.0)
 
 

@@ -59,7 +59,7 @@ from cloe_ros.core.algorithms import make_estimator
 from cloe_ros.core.anticipation import POSITION, AnticipationConfig, Anticipator, TrustStatus
 from cloe_ros.core.covariance import ErrorCovariance
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
-from cloe_ros.core.fleet import Fleet, PooledEstimator
+from cloe_ros.core.fleet import Fleet, PooledEstimator, row_of
 from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
 from cloe_ros.core.kinematics import (
     odometry_to_state_one,
@@ -959,11 +959,11 @@ class VehicleEngine:
         try:
             if not ok:
                 raise FloatingPointError('the step failed')
-            est = self._est
+            est, i = row_of(self._est)
             self._t_ns = step.t_ns
             self._last_r = step.used
             self._track_offsets(step.zeta, step.used)
-            if not (np.all(np.isfinite(est.zeta_hat)) and np.all(np.isfinite(est.theta_hat))):
+            if not (np.isfinite(est.zeta_hat[i]).all() and np.isfinite(est.theta_hat[i]).all()):
                 raise FloatingPointError('non-finite estimate')
             out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used))
         except NUMERICAL_FAILURES:
@@ -995,20 +995,20 @@ class VehicleEngine:
         """The estimate at ``t_ns``: ``r`` is the reference as received, ``used`` the one the
         estimator stepped with (the same unless a channel is not tracked)."""
         used = r if used is None else used
-        est = self._est
+        est, i = row_of(self._est)
         ident = getattr(est, 'identifier', None)
         model_theta, model_coupling = est.model
         e = Estimate(
             t_ns,
-            est.zeta_hat[0].copy(),
-            est.theta_hat[0].copy(),
-            est.gain_l[0].copy(),
+            est.zeta_hat[i].copy(),
+            est.theta_hat[i].copy(),
+            est.gain_l[i].copy(),
             zeta,
             r,
-            coupling=est.coupling[0].copy(),
+            coupling=est.coupling[i].copy(),
             identification=None if ident is None else (
-                ident.excitation[0].copy(), ident.uncertainty[0].copy(), ident.status[0].copy()),
-            model=(model_theta[0].copy(), model_coupling[0].copy()),
+                ident.excitation[i].copy(), ident.uncertainty[i].copy(), ident.status[i].copy()),
+            model=(model_theta[i].copy(), model_coupling[i].copy()),
             trust=self._trust,
         )  # fmt: skip
         e.error_variance = self._covariance.update(zeta, e.zeta_hat, e.gain_l).copy()
@@ -1053,7 +1053,7 @@ class VehicleEngine:
 
     def _predict(self, e: Estimate) -> None:
         """Attach the anticipated path to ``e`` (or say why there is none)."""
-        theta, coupling = (m[0] for m in self._est.model)
+        theta, coupling = e.model
         unstable = unstable_blocks(theta, coupling)
         if unstable:
             e.prediction_status = PREDICTION_WITHHELD

@@ -73,6 +73,14 @@ class PooledEstimator:
         return self.pool.remove(self.key)
 
 
+def row_of(est) -> tuple[object, int]:
+    """Where the state of vehicle estimator ``est`` lives: the batched estimator and the row
+    (a pool's, or ``est`` itself and row 0), to read its arrays without a view per attribute."""
+    if isinstance(est, PooledEstimator):
+        return est.pool.est, est.pool.rows[est.key]
+    return est, 0
+
+
 class EstimatorPool:
     """The estimators of vehicles whose settings agree, as the rows of one estimator."""
 

@@ -263,6 +263,10 @@ def _row_layout():
 
 
 PHI_MAP, XI_MAP, Y_F_MAP, Y_D_MAP, ROW_SIZE, ROW_SCALE, TARGET_SCALE = _row_layout()
+#: The maps as (channels, rows * WIDTH) matrices: ``f @ map`` is ``einsum('nc,rcw->nrw')`` as one
+#: BLAS product (30x faster at N = 100).
+PHI_FLAT, XI_FLAT = (np.ascontiguousarray(m.transpose(1, 0, 2).reshape(m.shape[1], -1))
+                     for m in (PHI_MAP, XI_MAP))  # fmt: skip
 
 
 def filter_matrices(bandwidth: float, highpass: float, h: float):
@@ -582,9 +586,9 @@ class IvIdentifier(Rows):
             return
         waiting = None if settled.all() else settled.astype(float)
         phi, xi, y = w.phi, w.xi, w.y
-        np.einsum('nc,rcw->nrw', f, PHI_MAP, out=phi)  # (N, rows, WIDTH)
+        np.matmul(f, PHI_FLAT, out=phi.reshape(len(f), -1))  # (N, rows, WIDTH)
         phi *= self._mask
-        np.einsum('nc,rcw->nrw', f, XI_MAP, out=xi)
+        np.matmul(f, XI_FLAT, out=xi.reshape(len(f), -1))
         xi *= self._mask
         np.matmul(f, Y_F_MAP.T, out=y)  # (N, rows)
         np.matmul(d, Y_D_MAP.T, out=w.rows)

@@ -10,9 +10,11 @@ from cloe_ros.core.anticipation import (
     AnticipationConfig,
     CoverageRadius,
     Ensemble,
+    History,
     VirtualReference,
     clip_to_envelope,
     harmonic_fit,
+    harmonic_fits,
     last_jump,
     linear_fit,
     simplex_weights,
@@ -30,6 +32,39 @@ def test_a_circle_is_extrapolated_by_the_shared_frequency_fit():
     out = harmonic_fit(t, circle, ahead, 2 * np.pi / np.geomspace(1.5, 30.0, 400), joint=True)
     truth = np.column_stack([1.5 + np.cos(w * ahead), -0.5 + np.sin(w * ahead)])
     np.testing.assert_allclose(out, truth, atol=0.02)
+
+
+def test_one_solve_gives_each_column_its_own_fit_and_the_joint_fit():
+    rng = np.random.default_rng(3)
+    t = np.linspace(-6.0, 0.0, 121)
+    y = np.column_stack([np.cos(0.9 * t), 2 * np.sin(0.9 * t), 0.4 * np.cos(2.1 * t), 0.2 * t])
+    y += 0.01 * rng.standard_normal(y.shape)
+    ahead, omegas = np.linspace(0.0, 3.0, 7), 2 * np.pi / np.geomspace(1.5, 30.0, 60)
+    separate, joint = harmonic_fits(t, y, ahead, omegas, np.array([0, 1]))
+    for c in range(4):  # a column's fit is the one it gets alone
+        np.testing.assert_allclose(separate[:, c], harmonic_fit(t, y[:, [c]], ahead, omegas)[:, 0],
+                                   rtol=0, atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(joint, harmonic_fit(t, y[:, :2], ahead, omegas, joint=True),
+                               rtol=0, atol=1e-12)  # fmt: skip
+
+
+def test_the_history_interpolates_every_channel_as_np_interp():
+    rng = np.random.default_rng(4)
+    history = History(2.0, 100.0)
+    for k in range(150):  # more than it holds: the ring wraps
+        t = 0.01 * k + 0.002 * rng.random()
+        history.append(t, rng.standard_normal(12), rng.standard_normal(12), rng.standard_normal(4),
+                       rng.standard_normal(4))  # fmt: skip
+    t, data = history.ordered('t'), history.ordered('measured')
+    inside = rng.uniform(t[0], t[-1], size=(4, 5))
+    edges = np.array([t[0], t[-1], t[7], t[0] - 1e-10, t[-1] + 1e-10])
+    for times in (inside, edges, t[3:4], np.array([0.5 * (t[3] + t[4])])):
+        got = history.at(times, 'measured', [0, 4, 10])
+        want = np.stack([np.interp(times, t, data[:, c]) for c in (0, 4, 10)], axis=-1)
+        np.testing.assert_array_equal(got, want)
+    outside = np.array([t[0] - 1e-6, t[-1] + 1e-6, np.nan])
+    assert np.isnan(history.at(outside, 'measured', [0, 4])).all()
+    assert np.isnan(history.at(outside[:1], 'measured', list(range(12)))).all()
 
 
 def test_a_line_is_extrapolated_by_the_linear_fit():
@@ -60,6 +95,18 @@ def test_weights_stay_on_the_simplex_when_the_unconstrained_optimum_is_negative(
     w = simplex_weights(s, np.ones(2, bool), shrink=0.0)
     assert np.all(w >= 0) and np.isclose(w.sum(), 1.0)
     np.testing.assert_allclose(w, [[1.0, 0.0]])
+
+
+def test_each_horizons_weights_are_those_it_gets_alone():
+    rng = np.random.default_rng(5)
+    a = rng.standard_normal((40, 5, 3)) + 2.0 * rng.standard_normal((1, 5, 3))
+    s = a @ np.swapaxes(a, 1, 2)  # some horizons need several active-set rounds, some one
+    allowed = np.array([True, True, False, True, True])
+    together = simplex_weights(s, allowed)
+    for k in range(len(s)):
+        np.testing.assert_array_equal(together[k], simplex_weights(s[k : k + 1], allowed)[0])
+    assert np.allclose(together.sum(axis=1), 1.0) and (together >= 0).all()
+    assert (together[:, 2] == 0).all()
 
 
 def test_the_ensemble_learns_which_candidate_is_right_at_each_horizon():

@@ -43,7 +43,7 @@ import math
 
 import numpy as np
 
-from cloe_ros.core.kinematics import euler_to_rotation, euler_to_rotation_one
+from cloe_ros.core.kinematics import euler_to_rotation
 from cloe_ros.core.model import N_STATES
 
 #: Conservative standard deviations before enough statistics, per state of ``zeta``: position
@@ -146,8 +146,7 @@ class ErrorCovariance:
         z[0], h[0] = measured, zeta_hat
         self._filled = min(self._filled + 1, len(D3))
         if self._filled == len(D3):
-            d3z = D3 @ z
-            d3h = D3 @ h
+            d3z, d3h = _third_difference(z), _third_difference(h)
             rho = 1.0 / (1.0 + self.step * np.maximum(gain_l, 0.0))
             self.count_d3 += 1
             w = self._weight(self.count_d3)
@@ -157,6 +156,69 @@ class ErrorCovariance:
         if self.count >= self.warmup_steps and self.count_d3 > 0:
             self.variance = error_variance(self.second_moment, self.noise, self.cross, self._rho)
         return self.variance
+
+    def _settings(self) -> tuple:
+        return self.step, self.alpha, self.warmup_steps, self.prior.tobytes()
+
+    @staticmethod
+    def update_many(
+        covs: list[ErrorCovariance], measured: np.ndarray, zeta_hat: np.ndarray,
+        gain_l: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        """:meth:`update` of several vehicles' statistics at once, with their measurements,
+        estimates and gains (K, 12): the same values, as arrays over the vehicles (each
+        object's state becomes a row of them). Returns the variances (K, 12)."""
+        first = covs[0]
+        if any(c._settings() != first._settings() for c in covs[1:]):
+            return np.array([c.update(m, zh, g) for c, m, zh, g in
+                             zip(covs, measured, zeta_hat, gain_l)])  # fmt: skip
+        n = len(D3)
+        count = np.array([c.count for c in covs]) + 1
+        e = measured - zeta_hat
+        second = np.array([c.second_moment for c in covs])
+        second += _weights(count, first.alpha) * (e * e - second)
+        z = np.empty((len(covs), n, N_STATES))
+        h = np.empty((len(covs), n, N_STATES))
+        z[:, 1:] = [c._z[:-1] for c in covs]
+        h[:, 1:] = [c._zeta_hat[:-1] for c in covs]
+        z[:, 0], h[:, 0] = measured, zeta_hat
+        filled = np.minimum(np.array([c._filled for c in covs]) + 1, n)
+        full = filled == n
+        noise = np.array([c.noise for c in covs])
+        cross = np.array([c.cross for c in covs])
+        count_d3 = np.array([c.count_d3 for c in covs]) + full
+        rho = np.array([getattr(c, '_rho', np.ones(N_STATES)) for c in covs])
+        variance = np.array([c.variance for c in covs])
+        if full.any():
+            d3z, d3h = _third_difference(z[full], axis=1), _third_difference(h[full], axis=1)
+            rho_new = 1.0 / (1.0 + first.step * np.maximum(gain_l[full], 0.0))
+            w = _weights(count_d3[full], first.alpha)
+            noise[full] += w * (d3z * d3z / D3_NOISE - noise[full])
+            cross[full] += w * (d3z * d3h / forgetting_factor(rho_new) - cross[full])
+            rho[full] = rho_new
+        ready = (count >= first.warmup_steps) & (count_d3 > 0)
+        if ready.any():
+            variance[ready] = error_variance(second[ready], noise[ready], cross[ready],
+                                             rho[ready])  # fmt: skip
+        for i, c in enumerate(covs):
+            c.count, c.count_d3, c._filled = int(count[i]), int(count_d3[i]), int(filled[i])
+            c.second_moment, c.noise, c.cross, c.variance = second[i], noise[i], cross[i], \
+                variance[i]
+            c._z, c._zeta_hat = z[i], h[i]
+            if full[i] or hasattr(c, '_rho'):
+                c._rho = rho[i]
+        return variance
+
+
+def _third_difference(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    """``D3 . x`` along ``axis`` (newest first): ``x0 - 3 x1 + 3 x2 - x3``."""
+    x0, x1, x2, x3 = np.moveaxis(x, axis, 0)
+    return ((x0 - 3.0 * x1) + 3.0 * x2) - x3
+
+
+def _weights(count: np.ndarray, alpha: float) -> np.ndarray:
+    """:meth:`ErrorCovariance._weight` per vehicle, (K, 1)."""
+    return np.maximum(1.0 / count, alpha)[:, None]
 
 
 # --------------------------------------------------------------- REP-105 (nav_msgs/Odometry)
@@ -214,16 +276,35 @@ def odometry_covariance(zeta_hat: np.ndarray, variance: np.ndarray) -> tuple[np.
 
 
 def _odometry_covariance_one(zeta: np.ndarray, variance: np.ndarray) -> tuple[np.ndarray, ...]:
-    rot = euler_to_rotation_one(zeta[6], zeta[2], zeta[8])
-    cr, sr = math.cos(zeta[6]), math.sin(zeta[6])
-    cp, sp = math.cos(zeta[2]), math.sin(zeta[2])
-    rates = np.array([[1.0, 0.0, -sp], [0.0, cr, cp * sr], [0.0, -sr, cp * cr]])
-    linear = (rot.T * variance[VELOCITY]) @ rot  # R^T diag(v) R
-    angular = (rates * variance[EULER_RATES]) @ rates.T  # T diag(v) T^T
-    pose = np.zeros((6, 6))
-    pose[_DIAGONAL, _DIAGONAL] = variance[POSITION]
-    pose[_DIAGONAL + 3, _DIAGONAL + 3] = variance[ATTITUDE]
-    twist = np.zeros((6, 6))
-    twist[:3, :3] = 0.5 * (linear + linear.T)
-    twist[3:, 3:] = 0.5 * (angular + angular.T)
+    pose, twist = odometry_covariance_floats(zeta, variance)
+    return np.array(pose).reshape(6, 6), np.array(twist).reshape(6, 6)
+
+
+def odometry_covariance_floats(zeta, variance) -> tuple[list[float], list[float]]:
+    """:func:`odometry_covariance` of one state (12,) as two row-major lists of 36 floats, by
+    scalar arithmetic (each ``cloe/state`` message is one): ``R^T diag R`` and ``T diag T^T``
+    written out, each symmetric pair computed once."""
+    z = [float(c) for c in zeta]
+    var = [float(c) for c in variance]
+    cr, sr = math.cos(z[6]), math.sin(z[6])
+    cp, sp = math.cos(z[2]), math.sin(z[2])
+    cy, sy = math.cos(z[8]), math.sin(z[8])
+    # R (world from body, ZYX) by rows; the world-velocity variances weigh its rows
+    rot = ((cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
+           (sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
+           (-sp, cp * sr, cp * cr))  # fmt: skip
+    v_world = (var[1], var[5], var[11])
+    # T (body rates from Euler rates) by rows; the Euler-rate variances weigh its columns
+    rates = ((1.0, 0.0, -sp), (0.0, cr, cp * sr), (0.0, -sr, cp * cr))
+    v_euler = (var[7], var[3], var[9])
+    pose = [0.0] * 36
+    for k, value in enumerate((var[0], var[4], var[10], var[6], var[2], var[8])):
+        pose[7 * k] = value
+    twist = [0.0] * 36
+    for i in range(3):
+        for k in range(i, 3):
+            linear = sum(rot[j][i] * v_world[j] * rot[j][k] for j in range(3))
+            angular = sum(rates[i][j] * v_euler[j] * rates[k][j] for j in range(3))
+            twist[6 * i + k] = twist[6 * k + i] = linear
+            twist[6 * (i + 3) + k + 3] = twist[6 * (k + 3) + i + 3] = angular
     return pose, twist

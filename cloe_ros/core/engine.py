@@ -953,9 +953,13 @@ class VehicleEngine:
             return False
         return True
 
-    def complete_step(self, step: Step, ok: bool, out: list[Estimate]) -> bool:
+    def complete_step(
+        self, step: Step, ok: bool, out: list[Estimate], variance: np.ndarray | None = None
+    ) -> bool:
         """After the estimator stepped (``ok``: without failing), the estimate of ``step`` into
-        ``out``; False if the estimator diverged (it restarts on the next step's data)."""
+        ``out``; False if the estimator diverged (it restarts on the next step's data).
+        ``variance``: the error statistics' update for this step if already made (a fleet
+        updates those of a batch at once, :meth:`ErrorCovariance.update_many`)."""
         try:
             if not ok:
                 raise FloatingPointError('the step failed')
@@ -965,7 +969,7 @@ class VehicleEngine:
             self._track_offsets(step.zeta, step.used)
             if not (np.isfinite(est.zeta_hat[i]).all() and np.isfinite(est.theta_hat[i]).all()):
                 raise FloatingPointError('non-finite estimate')
-            out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used))
+            out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used, variance))
         except NUMERICAL_FAILURES:
             # a diverged estimator never publishes: start over on the next step's data
             self._diverged(step.t_ns)
@@ -990,10 +994,12 @@ class VehicleEngine:
         self._forget_model()
 
     def _estimate(
-        self, t_ns: int, zeta: np.ndarray, r: np.ndarray, used: np.ndarray | None = None
-    ) -> Estimate:
+        self, t_ns: int, zeta: np.ndarray, r: np.ndarray, used: np.ndarray | None = None,
+        variance: np.ndarray | None = None,
+    ) -> Estimate:  # fmt: skip
         """The estimate at ``t_ns``: ``r`` is the reference as received, ``used`` the one the
-        estimator stepped with (the same unless a channel is not tracked)."""
+        estimator stepped with (the same unless a channel is not tracked); ``variance`` the
+        error statistics' update if made already (see :meth:`complete_step`)."""
         used = r if used is None else used
         est, i = row_of(self._est)
         ident = getattr(est, 'identifier', None)
@@ -1011,7 +1017,9 @@ class VehicleEngine:
             model=(model_theta[i].copy(), model_coupling[i].copy()),
             trust=self._trust,
         )  # fmt: skip
-        e.error_variance = self._covariance.update(zeta, e.zeta_hat, e.gain_l).copy()
+        if variance is None:
+            variance = self._covariance.update(zeta, e.zeta_hat, e.gain_l)
+        e.error_variance = variance.copy()
         self.stats.steps += 1
         self.stats.last_stamp_ns = t_ns
         self.stats.last_error_norm = float(np.linalg.norm(e.error))

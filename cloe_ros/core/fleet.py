@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloe_ros.core.covariance import ErrorCovariance
 from cloe_ros.core.rows import Rows
 
 if TYPE_CHECKING:
@@ -189,19 +190,20 @@ class Fleet:
             for batch in batches.values():
                 first, step = batch[0]
                 est = first.estimator
+                variances = [None] * len(batch)
                 if isinstance(est, PooledEstimator):
                     steps = [s for _, s in batch]
-                    ok = est.pool.step(
-                        [e.name for e, _ in batch],
-                        np.array([s.zeta for s in steps]),
-                        np.array([s.used for s in steps]),
-                        first.step_s,
-                        _tracked([s.tracked for s in steps]),
-                    )
+                    zeta = np.array([s.zeta for s in steps])
+                    names = [e.name for e, _ in batch]
+                    used = np.array([s.used for s in steps])
+                    tracked = _tracked([s.tracked for s in steps])
+                    ok = est.pool.step(names, zeta, used, first.step_s, tracked)
+                    if ok and len(batch) > 1:
+                        variances = _error_variances(est.pool, names, batch, zeta)
                 else:
                     ok = first.step_alone(step)
-                for engine, step in batch:
-                    if engine.complete_step(step, ok, out[engine.name]):
+                for (engine, step), variance in zip(batch, variances):
+                    if engine.complete_step(step, ok, out[engine.name], variance):
                         engines.append(engine)
         return {name: estimates for name, estimates in out.items() if estimates}
 
@@ -232,6 +234,24 @@ class RecordingBatches:
     def flush(self) -> dict[str, list[Estimate]]:
         due, self._due, self._end = list(self._due), {}, None
         return self.fleet.advance(due)
+
+
+def _error_variances(pool: EstimatorPool, names: list, batch: list, zeta: np.ndarray) -> list:
+    """The error statistics' updates of a batch that stepped (:class:`ErrorCovariance`), at
+    once; None for a vehicle whose estimate is not finite (its engine restarts it, and its
+    statistics take nothing of that step)."""
+    rows = np.fromiter((pool.rows[k] for k in names), dtype=np.intp, count=len(names))
+    zeta_hat, gain_l = pool.est.zeta_hat[rows], pool.est.gain_l[rows]
+    finite = np.isfinite(zeta_hat).all(axis=1) & np.isfinite(pool.est.theta_hat[rows]).all(axis=1)
+    out = [None] * len(batch)
+    which = np.flatnonzero(finite)
+    if len(which):
+        covs = [batch[i][0]._covariance for i in which]
+        variances = ErrorCovariance.update_many(covs, zeta[which], zeta_hat[which],
+                                                gain_l[which])  # fmt: skip
+        for j, i in enumerate(which):
+            out[i] = variances[j]
+    return out
 
 
 def _tracked(tracked: list) -> np.ndarray | None:

@@ -216,6 +216,13 @@ def state_to_odometry_one(
     zeta: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`state_to_odometry` for one state (12,), with scalar math."""
+    v = state_to_odometry_floats(zeta)
+    return np.array(v[:3]), np.array(v[3:7]), np.array(v[7:10]), np.array(v[10:])
+
+
+def state_to_odometry_floats(zeta) -> tuple[float, ...]:
+    """:func:`state_to_odometry_one` as 13 floats: position (3), quaternion (x, y, z, w), body
+    velocity (3), body rates (3), the order of an Odometry message's fields."""
     x, vx, pitch, dpitch, y, vy, roll, droll, yaw, dyaw, z, vz = (float(c) for c in zeta)
     cr, sr = math.cos(roll), math.sin(roll)
     cp, sp = math.cos(pitch), math.sin(pitch)
@@ -224,19 +231,15 @@ def state_to_odometry_one(
     chr_, shr = math.cos(hr), math.sin(hr)
     chp, shp = math.cos(hp), math.sin(hp)
     chy, shy = math.cos(hy), math.sin(hy)
-    quaternion = np.array([
+    return (
+        x, y, z,
         shr * chp * chy - chr_ * shp * shy,
         chr_ * shp * chy + shr * chp * shy,
         chr_ * chp * shy - shr * shp * chy,
         chr_ * chp * chy + shr * shp * shy,
-    ])  # fmt: skip
-    # body velocity = R^T v_world
-    v_body = np.array([
+        # body velocity = R^T v_world
         cy * cp * vx + sy * cp * vy - sp * vz,
         (cy * sp * sr - sy * cr) * vx + (sy * sp * sr + cy * cr) * vy + cp * sr * vz,
         (cy * sp * cr + sy * sr) * vx + (sy * sp * cr - cy * sr) * vy + cp * cr * vz,
-    ])  # fmt: skip
-    w_body = np.array([
-        droll - dyaw * sp, dpitch * cr + dyaw * cp * sr, -dpitch * sr + dyaw * cp * cr
-    ])  # fmt: skip
-    return np.array([x, y, z]), quaternion, v_body, w_body
+        droll - dyaw * sp, dpitch * cr + dyaw * cp * sr, -dpitch * sr + dyaw * cp * cr,
+    )  # fmt: skip

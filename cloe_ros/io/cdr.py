@@ -242,6 +242,20 @@ def encode_odometry(sample: OdometrySample) -> bytes:
     return bytes(w.buf)
 
 
+_ODOMETRY_VALUES = struct.Struct('<85d')
+
+
+def encode_odometry_floats(stamp_ns: int, frame_id: str, child_frame_id: str, values) -> bytes:
+    """:func:`encode_odometry` from the message's 85 doubles in field order (position,
+    orientation, pose covariance, linear, angular, twist covariance), floats already."""
+    w = _Writer()
+    w.stamp(stamp_ns)
+    w.string(frame_id)
+    w.string(child_frame_id)
+    w.pack(8, _ODOMETRY_VALUES, *values)
+    return bytes(w.buf)
+
+
 def encode_pose_stamped(sample: PoseSample) -> bytes:
     """CDR of a ``geometry_msgs/msg/PoseStamped``."""
     w = _Writer()

@@ -18,13 +18,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from cloe_ros.core.anticipation import CHANNELS
-from cloe_ros.core.covariance import odometry_covariance
+from cloe_ros.core.covariance import odometry_covariance_floats
 from cloe_ros.core.engine import NS, Estimate
 from cloe_ros.core.identifier import ROW_NAMES
-from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry_one
+from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry_floats
 from cloe_ros.core.model import COUPLED_BLOCKS, PARAMETER_NAMES, STATE_NAMES
-from cloe_ros.core.samples import OdometrySample, PathSample
+from cloe_ros.core.samples import PathSample
 from cloe_ros.errors import ConfigError
+from cloe_ros.io.cdr import encode_odometry_floats
 from cloe_ros.io.errors import OutputConfigError
 from cloe_ros.io.messages import (
     FLOAT64_MULTI_ARRAY,
@@ -36,7 +37,6 @@ from cloe_ros.io.messages import (
     encode_float64_multi_array,
     encode_multi_array,
     encode_named_values,
-    encode_odometry,
     encode_path,
     encode_prediction_markers,
     encode_string,
@@ -194,17 +194,16 @@ def encode_state(estimate: Estimate, world_frame: str, child_frame: str) -> byte
     """``cloe/state``: the estimated state as Odometry (pose in world, twist in body, REP-105),
     with the estimate's error covariances (6x6 row-major each,
     :func:`~cloe_ros.core.covariance.odometry_covariance`; zeros without ``error_variance``)."""
-    position, quaternion, v_body, w_body = state_to_odometry_one(estimate.zeta_hat)
-    pose_cov = twist_cov = None
-    if estimate.error_variance is not None:
-        pose, twist = odometry_covariance(estimate.zeta_hat, estimate.error_variance)
-        pose_cov, twist_cov = pose.ravel(), twist.ravel()
-    return encode_odometry(
-        OdometrySample(
-            estimate.stamp_ns, world_frame, child_frame, position, quaternion, v_body, w_body,
-            pose_cov, twist_cov,
-        )
-    )
+    v = state_to_odometry_floats(estimate.zeta_hat)
+    if estimate.error_variance is None:
+        pose = twist = _ZEROS36
+    else:
+        pose, twist = odometry_covariance_floats(estimate.zeta_hat, estimate.error_variance)
+    return encode_odometry_floats(estimate.stamp_ns, world_frame, child_frame,
+                                  (*v[:7], *pose, *v[7:], *twist))  # fmt: skip
+
+
+_ZEROS36 = (0.0,) * 36
 
 
 #: ``excitation.*`` / ``uncertainty.*`` when there is no finite value: not measured (the paper's

@@ -112,3 +112,32 @@ def test_the_covariance_covers_the_true_errors_at_about_the_gaussian_level(noisy
         assert gaussian - 0.25 <= c['ellipsoid_3d'] <= gaussian + 0.2, (name, c)
         assert c['count'] == len(run.t)
     assert np.isfinite(run.error_variance).all() and (run.error_variance > 0).all()
+
+
+def test_the_statistics_of_many_vehicles_update_at_once_as_each_alone():
+    rng = np.random.default_rng(0)
+    k = 5
+    alone = [ErrorCovariance(0.01) for _ in range(k)]
+    together = [ErrorCovariance(0.01) for _ in range(k)]
+    for step in range(600):
+        measured = rng.normal(size=(k, 12))
+        zeta_hat = measured + 0.01 * rng.normal(size=(k, 12))
+        gains = rng.uniform(-1.0, 20.0, size=(k, 12))
+        if step % 97 == 13:  # a vehicle's estimator restarts, another's statistics reset
+            alone[step % k].restart()
+            together[step % k].restart()
+        if step % 211 == 50:
+            alone[1].reset()
+            together[1].reset()
+        which = [i for i in range(k) if rng.random() < 0.8] or [0]  # not all step every time
+        want = np.array([alone[i].update(measured[i], zeta_hat[i], gains[i]) for i in which])
+        got = ErrorCovariance.update_many([together[i] for i in which], measured[which],
+                                          zeta_hat[which], gains[which])  # fmt: skip
+        np.testing.assert_array_equal(got, want)
+        if step % 50 == 7:  # and one stepped alone after a batch goes on alike
+            i = which[0]
+            np.testing.assert_array_equal(
+                together[i].update(measured[i], zeta_hat[i], gains[i]),
+                alone[i].update(measured[i], zeta_hat[i], gains[i]),
+            )
+    assert all(c.count_d3 > 50 for c in together)  # (the statistics, not only the prior)

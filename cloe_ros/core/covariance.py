@@ -60,13 +60,18 @@ WARMUP = 1.0
 #: Third-difference weights (newest first) and ``E[(d3 n)^2] / R`` for white noise.
 D3 = np.array([1.0, -3.0, 3.0, -1.0])
 D3_NOISE = float(D3 @ D3)  # 20
+#: The layout of :class:`ErrorCovariance`'s state vector: E[e^2], R, C, the variance, rho (12
+#: each), the last four measurements and estimates (4 x 12 each, newest first).
+_SM, _NOISE, _CROSS, _VAR, _RHO = (slice(12 * i, 12 * i + 12) for i in range(5))
+_ZH = slice(60, 156)  # (2, 4, 12): measurements, estimates
+_STATE_SIZE = 156
 
 
 def forgetting_factor(rho: np.ndarray) -> np.ndarray:
     """``f(rho) = E[d3 z d3 zeta_hat] / (g R)`` for an estimate ``sum_j g rho^j n_k-j`` (module
     docstring): 10 at ``rho = 1``, 20 at ``rho = 0``."""
     rho = np.asarray(rho, dtype=float)
-    return 19.0 - 12.0 * rho + 3.0 * rho**2 - (rho - 1.0) ** 3
+    return 20.0 + rho * (-15.0 + rho * (6.0 - rho))  # (expanded, by Horner)
 
 
 def error_variance(
@@ -79,7 +84,10 @@ def error_variance(
     p = second_moment - noise + 2.0 * cross
     schwarz = np.divide(cross * cross, noise, out=np.zeros_like(noise), where=noise > 0.0)
     linear = (1.0 - rho) / (1.0 + rho) * noise
-    return np.clip(np.maximum(p, np.maximum(schwarz, linear)), FLOOR, CEILING)
+    np.maximum(p, schwarz, out=p)
+    np.maximum(p, linear, out=p)
+    np.maximum(p, FLOOR, out=p)
+    return np.minimum(p, CEILING, out=p)
 
 
 class ErrorCovariance:
@@ -115,21 +123,25 @@ class ErrorCovariance:
 
     def reset(self) -> None:
         """Back to the prior: the statistics start over (a reset estimator)."""
-        self.second_moment = np.zeros(N_STATES)  # E[e^2]
-        self.noise = np.zeros(N_STATES)  # R
-        self.cross = np.zeros(N_STATES)  # C
+        # one vector per vehicle (see _SM ... _H): E[e^2], R, C, the variance, the forgetting
+        # rho of the last full difference, and the last four measurements and estimates
+        self._state = np.zeros(_STATE_SIZE)
+        self._state[_VAR] = self.prior
+        self._state[_RHO] = 1.0
         self.count = 0  # samples in second_moment
         self.count_d3 = 0  # samples in noise and cross
-        self.variance = self.prior.copy()
         self.restart()
 
     def restart(self) -> None:
         """A new estimator on new data (a time or position jump): the differences start over,
         the statistics are kept."""
-        # the last four measurements and estimates, newest first (rows); _filled of them so far
-        self._z = np.zeros((len(D3), N_STATES))
-        self._zeta_hat = np.zeros((len(D3), N_STATES))
-        self._filled = 0
+        self._state[_ZH] = 0.0
+        self._filled = 0  # of the last four measurements and estimates (newest first)
+
+    second_moment = property(lambda self: self._state[_SM], doc='E[e^2] (12,)')
+    noise = property(lambda self: self._state[_NOISE], doc='R (12,)')
+    cross = property(lambda self: self._state[_CROSS], doc='C (12,)')
+    variance = property(lambda self: self._state[_VAR], doc='E[(zeta_hat - zeta)^2] (12,)')
 
     def _weight(self, count: int) -> float:
         return max(1.0 / count, self.alpha)
@@ -137,25 +149,27 @@ class ErrorCovariance:
     def update(self, measured: np.ndarray, zeta_hat: np.ndarray, gain_l: np.ndarray) -> np.ndarray:
         """Take one step's measurement and estimate (12,) and the observer gains ``L`` (12,) it
         stepped with; returns :attr:`variance` (12,), the estimated ``E[(zeta_hat - zeta)^2]``."""
+        st = self._state
         e = measured - zeta_hat
         self.count += 1
-        self.second_moment += self._weight(self.count) * (e * e - self.second_moment)
-        z, h = self._z, self._zeta_hat
-        z[1:] = z[:-1]
-        h[1:] = h[:-1]
-        z[0], h[0] = measured, zeta_hat
+        second = st[_SM]
+        second += self._weight(self.count) * (e * e - second)
+        zh = st[_ZH].reshape(2, len(D3), N_STATES)
+        zh[:, 1:] = zh[:, :-1]
+        zh[0, 0], zh[1, 0] = measured, zeta_hat
         self._filled = min(self._filled + 1, len(D3))
         if self._filled == len(D3):
-            d3z, d3h = _third_difference(z), _third_difference(h)
+            d3z, d3h = _third_difference(zh)
             rho = 1.0 / (1.0 + self.step * np.maximum(gain_l, 0.0))
             self.count_d3 += 1
             w = self._weight(self.count_d3)
-            self.noise += w * (d3z * d3z / D3_NOISE - self.noise)
-            self.cross += w * (d3z * d3h / forgetting_factor(rho) - self.cross)
-            self._rho = rho
+            noise, cross = st[_NOISE], st[_CROSS]
+            noise += w * (d3z * d3z / D3_NOISE - noise)
+            cross += w * (d3z * d3h / forgetting_factor(rho) - cross)
+            st[_RHO] = rho
         if self.count >= self.warmup_steps and self.count_d3 > 0:
-            self.variance = error_variance(self.second_moment, self.noise, self.cross, self._rho)
-        return self.variance
+            st[_VAR] = error_variance(st[_SM], st[_NOISE], st[_CROSS], st[_RHO])
+        return st[_VAR]
 
     def _settings(self) -> tuple:
         return self.step, self.alpha, self.warmup_steps, self.prior.tobytes()
@@ -172,48 +186,47 @@ class ErrorCovariance:
         if any(c._settings() != first._settings() for c in covs[1:]):
             return np.array([c.update(m, zh, g) for c, m, zh, g in
                              zip(covs, measured, zeta_hat, gain_l)])  # fmt: skip
-        n = len(D3)
-        count = np.array([c.count for c in covs]) + 1
+        k, n = len(covs), len(D3)
+        state = np.array([c._state for c in covs])  # (K, _STATE_SIZE)
+        counts = np.array([(c.count, c.count_d3, c._filled) for c in covs])
+        count = counts[:, 0] + 1
         e = measured - zeta_hat
-        second = np.array([c.second_moment for c in covs])
+        second = state[:, _SM]
         second += _weights(count, first.alpha) * (e * e - second)
-        z = np.empty((len(covs), n, N_STATES))
-        h = np.empty((len(covs), n, N_STATES))
-        z[:, 1:] = [c._z[:-1] for c in covs]
-        h[:, 1:] = [c._zeta_hat[:-1] for c in covs]
-        z[:, 0], h[:, 0] = measured, zeta_hat
-        filled = np.minimum(np.array([c._filled for c in covs]) + 1, n)
+        zh = state[:, _ZH].reshape(k, 2, n, N_STATES)
+        zh[:, :, 1:] = zh[:, :, :-1]
+        zh[:, 0, 0], zh[:, 1, 0] = measured, zeta_hat
+        filled = np.minimum(counts[:, 2] + 1, n)
         full = filled == n
-        noise = np.array([c.noise for c in covs])
-        cross = np.array([c.cross for c in covs])
-        count_d3 = np.array([c.count_d3 for c in covs]) + full
-        rho = np.array([getattr(c, '_rho', np.ones(N_STATES)) for c in covs])
-        variance = np.array([c.variance for c in covs])
+        count_d3 = counts[:, 1] + full
         if full.any():
-            d3z, d3h = _third_difference(z[full], axis=1), _third_difference(h[full], axis=1)
-            rho_new = 1.0 / (1.0 + first.step * np.maximum(gain_l[full], 0.0))
-            w = _weights(count_d3[full], first.alpha)
-            noise[full] += w * (d3z * d3z / D3_NOISE - noise[full])
-            cross[full] += w * (d3z * d3h / forgetting_factor(rho_new) - cross[full])
-            rho[full] = rho_new
+            d3 = _third_difference(zh)
+            d3z, d3h = d3[:, 0], d3[:, 1]
+            rho = 1.0 / (1.0 + first.step * np.maximum(gain_l, 0.0))
+            w = _weights(np.maximum(count_d3, 1), first.alpha)
+            noise, cross = state[:, _NOISE], state[:, _CROSS]
+            new_noise = noise + w * (d3z * d3z / D3_NOISE - noise)
+            new_cross = cross + w * (d3z * d3h / forgetting_factor(rho) - cross)
+            if full.all():
+                noise[:], cross[:], state[:, _RHO] = new_noise, new_cross, rho
+            else:
+                noise[full], cross[full] = new_noise[full], new_cross[full]
+                state[full, _RHO] = rho[full]
         ready = (count >= first.warmup_steps) & (count_d3 > 0)
         if ready.any():
-            variance[ready] = error_variance(second[ready], noise[ready], cross[ready],
-                                             rho[ready])  # fmt: skip
+            variance = error_variance(state[:, _SM], state[:, _NOISE], state[:, _CROSS],
+                                      state[:, _RHO])  # fmt: skip
+            state[:, _VAR] = np.where(ready[:, None], variance, state[:, _VAR])
         for i, c in enumerate(covs):
+            c._state = state[i]
             c.count, c.count_d3, c._filled = int(count[i]), int(count_d3[i]), int(filled[i])
-            c.second_moment, c.noise, c.cross, c.variance = second[i], noise[i], cross[i], \
-                variance[i]
-            c._z, c._zeta_hat = z[i], h[i]
-            if full[i] or hasattr(c, '_rho'):
-                c._rho = rho[i]
-        return variance
+        return state[:, _VAR]
 
 
-def _third_difference(x: np.ndarray, axis: int = 0) -> np.ndarray:
-    """``D3 . x`` along ``axis`` (newest first): ``x0 - 3 x1 + 3 x2 - x3``."""
-    x0, x1, x2, x3 = np.moveaxis(x, axis, 0)
-    return ((x0 - 3.0 * x1) + 3.0 * x2) - x3
+def _third_difference(x: np.ndarray) -> np.ndarray:
+    """``D3 . x`` along the next-to-last axis (the last four samples, newest first):
+    ``x0 - 3 x1 + 3 x2 - x3``, one product per (4, 12) block whatever the batch."""
+    return D3 @ x
 
 
 def _weights(count: np.ndarray, alpha: float) -> np.ndarray:
@@ -284,27 +297,43 @@ def odometry_covariance_floats(zeta, variance) -> tuple[list[float], list[float]
     """:func:`odometry_covariance` of one state (12,) as two row-major lists of 36 floats, by
     scalar arithmetic (each ``cloe/state`` message is one): ``R^T diag R`` and ``T diag T^T``
     written out, each symmetric pair computed once."""
-    z = [float(c) for c in zeta]
-    var = [float(c) for c in variance]
-    cr, sr = math.cos(z[6]), math.sin(z[6])
-    cp, sp = math.cos(z[2]), math.sin(z[2])
-    cy, sy = math.cos(z[8]), math.sin(z[8])
-    # R (world from body, ZYX) by rows; the world-velocity variances weigh its rows
-    rot = ((cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
-           (sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
-           (-sp, cp * sr, cp * cr))  # fmt: skip
-    v_world = (var[1], var[5], var[11])
-    # T (body rates from Euler rates) by rows; the Euler-rate variances weigh its columns
-    rates = ((1.0, 0.0, -sp), (0.0, cr, cp * sr), (0.0, -sr, cp * cr))
-    v_euler = (var[7], var[3], var[9])
+    roll, pitch, yaw = float(zeta[6]), float(zeta[2]), float(zeta[8])
+    (p_x, v_x, p_pitch, r_pitch, p_y, v_y, p_roll, r_roll, p_yaw, r_yaw, p_z,
+     v_z) = variance.tolist()  # fmt: skip
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    # R (world from body, ZYX), its rows j weighed by the world-velocity variances v_j
+    r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    r20, r21, r22 = -sp, cp * sr, cp * cr
+    w00, w01, w02 = r00 * v_x, r01 * v_x, r02 * v_x
+    w10, w11, w12 = r10 * v_y, r11 * v_y, r12 * v_y
+    w20, w21, w22 = r20 * v_z, r21 * v_z, r22 * v_z
+    l00 = w00 * r00 + w10 * r10 + w20 * r20
+    l01 = w00 * r01 + w10 * r11 + w20 * r21
+    l02 = w00 * r02 + w10 * r12 + w20 * r22
+    l11 = w01 * r01 + w11 * r11 + w21 * r21
+    l12 = w01 * r02 + w11 * r12 + w21 * r22
+    l22 = w02 * r02 + w12 * r12 + w22 * r22
+    # T (body rates from Euler rates: rows (1, 0, -sp), (0, cr, cp sr), (0, -sr, cp cr)), its
+    # columns weighed by the roll, pitch and yaw rate variances
+    t12, t22 = cp * sr, cp * cr
+    a00 = r_roll + sp * r_yaw * sp
+    a01 = -sp * r_yaw * t12
+    a02 = -sp * r_yaw * t22
+    a11 = cr * r_pitch * cr + t12 * r_yaw * t12
+    a12 = -cr * r_pitch * sr + t12 * r_yaw * t22
+    a22 = sr * r_pitch * sr + t22 * r_yaw * t22
     pose = [0.0] * 36
-    for k, value in enumerate((var[0], var[4], var[10], var[6], var[2], var[8])):
-        pose[7 * k] = value
-    twist = [0.0] * 36
-    for i in range(3):
-        for k in range(i, 3):
-            linear = sum(rot[j][i] * v_world[j] * rot[j][k] for j in range(3))
-            angular = sum(rates[i][j] * v_euler[j] * rates[k][j] for j in range(3))
-            twist[6 * i + k] = twist[6 * k + i] = linear
-            twist[6 * (i + 3) + k + 3] = twist[6 * (k + 3) + i + 3] = angular
+    pose[0], pose[7], pose[14], pose[21], pose[28], pose[35] = (
+        p_x, p_y, p_z, p_roll, p_pitch, p_yaw)  # fmt: skip
+    twist = [
+        l00, l01, l02, 0.0, 0.0, 0.0,
+        l01, l11, l12, 0.0, 0.0, 0.0,
+        l02, l12, l22, 0.0, 0.0, 0.0,
+        0.0, 0.0, 0.0, a00, a01, a02,
+        0.0, 0.0, 0.0, a01, a11, a12,
+        0.0, 0.0, 0.0, a02, a12, a22,
+    ]  # fmt: skip
     return pose, twist

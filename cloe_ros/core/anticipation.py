@@ -265,22 +265,36 @@ def harmonic_fits(
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`harmonic_fit` of every column of ``y`` (K, C), and of the columns ``joint`` with
     one frequency (K, len(joint)), from one least-squares solve per frequency."""
-    wt = np.outer(omegas, t)  # (W, T)
-    basis = np.stack([np.ones_like(wt), np.cos(wt), np.sin(wt)], axis=-1)  # (W, T, 3)
-    basis_t = np.swapaxes(basis, 1, 2)  # (W, 3, T); matmul (BLAS), 3x einsum's speed here
+    separate, shared = harmonic_fits_batch(t[None], y[None], ahead, omegas, joint)
+    return separate[0], shared[0]
+
+
+def harmonic_fits_batch(
+    t: np.ndarray, y: np.ndarray, ahead: np.ndarray, omegas: np.ndarray, joint: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`harmonic_fits` of V series at once: ``t`` (V, T), ``y`` (V, T, C); returns
+    (V, K, C) and (V, K, len(joint)), each series' as it gets alone (every product is per
+    series and frequency)."""
+    wt = omegas[None, :, None] * t[:, None, :]  # (V, W, T)
+    basis = np.stack([np.ones_like(wt), np.cos(wt), np.sin(wt)], axis=-1)  # (V, W, T, 3)
+    basis_t = np.swapaxes(basis, -1, -2)  # (V, W, 3, T); matmul (BLAS), 3x einsum's speed here
     gram = basis_t @ basis + 1e-9 * np.eye(3)
-    coef = np.linalg.solve(gram, basis_t @ y)  # (W, 3, C)
-    resid = np.sum((basis @ coef - y[None]) ** 2, axis=1)  # (W, C)
+    coef = np.linalg.solve(gram, basis_t @ y[:, None])  # (V, W, 3, C)
+    resid = np.sum((basis @ coef - y[:, None]) ** 2, axis=-2)  # (V, W, C)
+    series = np.arange(len(t))[:, None]
 
-    def extrapolate(best: np.ndarray, columns: np.ndarray) -> np.ndarray:
-        wa = np.outer(ahead, omegas[best])  # (K, C)
-        c = coef[best, :, columns]  # (C, 3)
-        return c[:, 0] + c[:, 1] * np.cos(wa) + c[:, 2] * np.sin(wa)
+    def extrapolate(best: np.ndarray, columns: np.ndarray) -> np.ndarray:  # best (V, C')
+        wa = ahead[None, :, None] * omegas[best][:, None, :]  # (V, K, C')
+        c = coef[series, best, :, columns[None, :]]  # (V, C', 3)
+        return (c[:, None, :, 0] + c[:, None, :, 1] * np.cos(wa)
+                + c[:, None, :, 2] * np.sin(wa))  # fmt: skip
 
-    columns = np.arange(y.shape[1])
-    separate = extrapolate(np.argmin(resid, axis=0), columns)
-    best = int(np.argmin(resid[:, joint].sum(axis=1))) if len(joint) else 0
-    return separate, extrapolate(np.full(len(joint), best), joint)
+    columns = np.arange(y.shape[2])
+    separate = extrapolate(np.argmin(resid, axis=1), columns)
+    if not len(joint):
+        return separate, np.zeros((len(t), len(ahead), 0))
+    best = np.argmin(resid[:, :, joint].sum(axis=2), axis=1)  # (V,)
+    return separate, extrapolate(np.repeat(best[:, None], len(joint), axis=1), joint)
 
 
 def linear_fit(t: np.ndarray, y: np.ndarray, ahead: np.ndarray) -> np.ndarray:
@@ -312,6 +326,10 @@ class Intent:
     def candidates(self, t: np.ndarray, r: np.ndarray) -> np.ndarray:
         """(len(INTENT_MODELS), K, 4) futures of the references ``r`` (T, 4) sampled at ``t``
         (T,) s, the last sample being now."""
+        return run(self.candidates_steps(t, r))
+
+    def candidates_steps(self, t: np.ndarray, r: np.ndarray):
+        """:meth:`candidates` as steps (see :func:`run`): the harmonic fit is a request."""
         k = len(self.ahead)
         out = np.broadcast_to(r[-1], (len(INTENT_MODELS), k, 4)).copy()
         now = t[-1]
@@ -324,7 +342,7 @@ class Intent:
             step = max(1, round(1.0 / (self.SUBSAMPLE_HZ * max(np.median(np.diff(t)), 1e-6))))
             ts, rs = t[::-1][::step][::-1], r[::-1][::step][::-1]  # (keeps the last sample)
             if len(ts) >= 10:
-                out[2], joint = harmonic_fits(ts, rs, self.ahead, self.OMEGAS, XY)
+                out[2], joint = yield HarmonicFits(ts, rs, self.ahead, self.OMEGAS, XY)
                 out[3] = out[2]
                 out[3][:, :2] = joint
         return out
@@ -359,6 +377,108 @@ def simplex_weights(s: np.ndarray, allowed: np.ndarray, shrink: float = 0.1) -> 
         todo = todo[again]
         active[todo, worst[again]] = False
     return np.where(active, np.clip(w, 0.0, None), 0.0)
+
+
+# ------------------------------------------------------------------------ requests
+#
+# The solves of a prediction that cost the most for their size (a least-squares fit per
+# frequency, the simplex weights) are written as steps: a generator yields a request and is sent
+# its answer. :func:`run` answers at once; :func:`run_together` drives the predictions of many
+# vehicles side by side and answers the requests of one kind and shape in one batched call,
+# each the answer it would get alone.
+
+
+@dataclass(frozen=True)
+class HarmonicFits:
+    """A request for :func:`harmonic_fits` with these arguments."""
+
+    t: np.ndarray
+    y: np.ndarray
+    ahead: np.ndarray
+    omegas: np.ndarray
+    joint: np.ndarray
+
+    def key(self) -> tuple:
+        return ('harmonic', self.y.shape, self.ahead.tobytes(), self.omegas.tobytes(),
+                self.joint.tobytes())  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SimplexWeights:
+    """A request for :func:`simplex_weights` of ``s`` (K, M, M) over ``allowed`` (M,)."""
+
+    s: np.ndarray
+    allowed: np.ndarray
+
+    def key(self) -> tuple:
+        return ('simplex', self.s.shape[1])
+
+
+def answer(requests: list) -> list:
+    """The answers of ``requests`` (all of one :meth:`key`), in one batched call."""
+    first = requests[0]
+    if isinstance(first, HarmonicFits):
+        separate, joint = harmonic_fits_batch(
+            np.array([r.t for r in requests]), np.array([r.y for r in requests]), first.ahead,
+            first.omegas, first.joint)  # fmt: skip
+        return list(zip(separate, joint))
+    sizes = [len(r.s) for r in requests]
+    allowed = np.concatenate([np.broadcast_to(r.allowed, r.s.shape[:2]) for r in requests])
+    w = simplex_weights(np.concatenate([r.s for r in requests]), allowed)
+    return np.split(w, np.cumsum(sizes)[:-1])
+
+
+def run(steps):
+    """The value of the generator ``steps``, its requests answered one at a time."""
+    try:
+        request = next(steps)
+        while True:
+            request = steps.send(answer([request])[0])
+    except StopIteration as done:
+        return done.value
+
+
+def run_together(all_steps: list, failures: tuple = (ArithmeticError, np.linalg.LinAlgError)
+                 ) -> list:  # fmt: skip
+    """The values of several generators driven side by side (requests of one kind and shape
+    answered together); a generator that raises one of ``failures`` gets it as its value (a
+    batched call that raises is answered again one request at a time, so that only the
+    generator whose request failed fails)."""
+    values: list = [None] * len(all_steps)
+    live: dict[int, object] = {}
+
+    def resume(i: int, send) -> None:
+        steps = all_steps[i]
+        try:
+            if isinstance(send, BaseException):
+                live[i] = steps.throw(send)
+            else:
+                live[i] = steps.send(send)
+        except StopIteration as done:
+            values[i] = done.value
+        except failures as err:
+            values[i] = err
+
+    for i in range(len(all_steps)):
+        resume(i, None)
+    while live:
+        groups: dict[tuple, list[int]] = {}
+        for i, request in live.items():
+            groups.setdefault(request.key(), []).append(i)
+        asked, live = live, {}
+        for members in groups.values():
+            try:
+                answers = answer([asked[i] for i in members])
+            except failures:
+                answers = []
+                for i in members:
+                    try:
+                        answers.append(answer([asked[i]])[0])
+                    except failures as err:
+                        answers.append(err)
+            for i, reply in zip(members, answers):
+                resume(i, reply)
+    return values
 
 
 def _occurrence(values: np.ndarray) -> np.ndarray:
@@ -491,13 +611,17 @@ class Ensemble:
 
     def weights(self, allowed: np.ndarray | None = None) -> np.ndarray:
         """(K, M) weights (rows sum to 1) over the ``allowed`` (M,) candidates (default all)."""
+        return run(self.weights_steps(allowed))
+
+    def weights_steps(self, allowed: np.ndarray | None = None):
+        """:meth:`weights` as steps (see :func:`run`): the simplex solve is a request."""
         m = len(self.names)
         allowed = np.ones(m, dtype=bool) if allowed is None else np.asarray(allowed, bool)
         if not self.scored.any():
             w = np.zeros((len(self.offsets), m))
             w[:, int(np.flatnonzero(allowed)[0])] = 1.0
             return w
-        return simplex_weights(self.expected_cross(), allowed)
+        return (yield SimplexWeights(self.expected_cross(), allowed))
 
 
 # ------------------------------------------------------------------------------ radius
@@ -921,6 +1045,10 @@ class Anticipator:
         ``plan`` (K, 4) when given, else the intent (or the reference held, without intent);
         untracked channels take the virtual reference of ``zeta``, held. Also returns the intent
         candidates (M, K, 4) (None with a plan)."""
+        return run(self.reference_path_steps(t, zeta, plan))
+
+    def reference_path_steps(self, t: float, zeta: np.ndarray, plan: np.ndarray | None):
+        """:meth:`reference_path` as steps (see :func:`run`)."""
         hist = self.history
         idx = hist.last(self.config.intent_window + 0.5)
         logged = hist.logged[idx]
@@ -928,8 +1056,8 @@ class Anticipator:
         if plan is not None:
             path = np.array(plan, float)
         elif self.config.intent and len(idx) >= 2:
-            candidates = self.intent.candidates(hist.t[idx], logged)
-            w = self.intent_scores.weights()  # (K, M)
+            candidates = yield from self.intent.candidates_steps(hist.t[idx], logged)
+            w = yield from self.intent_scores.weights_steps()  # (K, M)
             path = np.einsum('km,mkc->kc', w, candidates)
             self.intent_scores.add(t, candidates[:, :, POSITION_CHANNELS])
         else:
@@ -946,6 +1074,11 @@ class Anticipator:
         ``model_positions`` (K, 3) and the reference-free ones from the ``measured`` state)
         combined by the guard, within the physical envelope about ``center`` (the estimated
         position and velocity; default: the measured ones), with the radius."""
+        return run(self.combine_steps(t, model_positions, measured, coupling, center))
+
+    def combine_steps(self, t: float, model_positions: np.ndarray, measured: np.ndarray,
+                      coupling: np.ndarray, center: tuple | None = None):  # fmt: skip
+        """:meth:`combine` as steps (see :func:`run`)."""
         cfg = self.config
         hist = self.history
         paths = np.empty((len(CANDIDATES) + 1, len(self.poses), 3))
@@ -963,7 +1096,7 @@ class Anticipator:
             # a reference it does not follow) nor where its recent path would take it
             allowed[[CANDIDATES.index('model'), CANDIDATES.index('centroid')]] = False
         if cfg.guard:
-            w = self._weights(allowed)
+            w = yield from self._weights_steps(allowed)
         else:
             w = np.zeros((len(self.poses), len(CANDIDATES)))
             w[:, 0 if allowed[0] else CANDIDATES.index('hold')] = 1.0
@@ -985,7 +1118,7 @@ class Anticipator:
             self._scales[round(t, 6)] = scales
         return Anticipation(published, radius, w, trust)
 
-    def _weights(self, allowed: np.ndarray) -> np.ndarray:
+    def _weights_steps(self, allowed: np.ndarray):
         """Guard weights over the candidates (the published path is scored, not weighted)."""
         m = len(CANDIDATES)
         g = self.guard
@@ -994,4 +1127,4 @@ class Anticipator:
             w[:, int(np.flatnonzero(allowed)[0])] = 1.0
             return w
         cross = g.expected_cross()[:, :m, :m]
-        return simplex_weights(cross, allowed)
+        return (yield SimplexWeights(cross, allowed))

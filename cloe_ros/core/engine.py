@@ -56,7 +56,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from cloe_ros.core.algorithms import make_estimator
-from cloe_ros.core.anticipation import POSITION, AnticipationConfig, Anticipator, TrustStatus
+from cloe_ros.core.anticipation import (
+    POSITION,
+    AnticipationConfig,
+    Anticipator,
+    TrustStatus,
+    run,
+)
 from cloe_ros.core.covariance import ErrorCovariance
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.fleet import Fleet, PooledEstimator, row_of
@@ -321,6 +327,7 @@ class VehicleEngine:
         self._anchor_exact = False  # (re)start exactly at _anchor_ns (after a reset)
         self._model: tuple[np.ndarray, np.ndarray] | None = None  # theta_hat, L to restart with
         self._pending: list[Estimate] = []  # estimates produced while handling a time jump
+        self._deferred: Estimate | None = None  # whose prediction the caller runs (a fleet)
         self._plan: tuple[np.ndarray, np.ndarray] | None = None  # stamps (K,), refs (K, 4)
         self._predictor = Predictor(config.prediction)
         self._prediction_slot: int | None = None
@@ -954,12 +961,15 @@ class VehicleEngine:
         return True
 
     def complete_step(
-        self, step: Step, ok: bool, out: list[Estimate], variance: np.ndarray | None = None
-    ) -> bool:
+        self, step: Step, ok: bool, out: list[Estimate], variance: np.ndarray | None = None,
+        defer: bool = False,
+    ) -> bool:  # fmt: skip
         """After the estimator stepped (``ok``: without failing), the estimate of ``step`` into
         ``out``; False if the estimator diverged (it restarts on the next step's data).
         ``variance``: the error statistics' update for this step if already made (a fleet
-        updates those of a batch at once, :meth:`ErrorCovariance.update_many`)."""
+        updates those of a batch at once, :meth:`ErrorCovariance.update_many`). ``defer``: a
+        prediction due is left to the caller (:meth:`take_deferred`), to run before this
+        vehicle's next step."""
         try:
             if not ok:
                 raise FloatingPointError('the step failed')
@@ -969,7 +979,7 @@ class VehicleEngine:
             self._track_offsets(step.zeta, step.used)
             if not (np.isfinite(est.zeta_hat[i]).all() and np.isfinite(est.theta_hat[i]).all()):
                 raise FloatingPointError('non-finite estimate')
-            out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used, variance))
+            out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used, variance, defer))
         except NUMERICAL_FAILURES:
             # a diverged estimator never publishes: start over on the next step's data
             self._diverged(step.t_ns)
@@ -995,7 +1005,7 @@ class VehicleEngine:
 
     def _estimate(
         self, t_ns: int, zeta: np.ndarray, r: np.ndarray, used: np.ndarray | None = None,
-        variance: np.ndarray | None = None,
+        variance: np.ndarray | None = None, defer: bool = False,
     ) -> Estimate:  # fmt: skip
         """The estimate at ``t_ns``: ``r`` is the reference as received, ``used`` the one the
         estimator stepped with (the same unless a channel is not tracked); ``variance`` the
@@ -1035,8 +1045,23 @@ class VehicleEngine:
             slot = t_ns // round(NS / self.config.prediction.rate)
             if self._prediction_slot is None or slot > self._prediction_slot:
                 self._prediction_slot = slot
-                self._predict(e)
+                if defer:
+                    self._deferred = e
+                else:
+                    self._predict(e)
         return e
+
+    def take_deferred(self) -> Estimate | None:
+        """The estimate whose prediction :meth:`complete_step` left to the caller (None if
+        none): the caller runs :meth:`prediction_steps` of it, or calls
+        :meth:`prediction_failed` if that raised a numerical failure."""
+        e, self._deferred = self._deferred, None
+        return e
+
+    def prediction_failed(self, e: Estimate) -> None:
+        """The deferred prediction of ``e`` failed numerically: as a failure of its step (the
+        estimate is not published; the estimator restarts on the next step's data)."""
+        self._diverged(e.stamp_ns)
 
     def _track_offsets(self, zeta: np.ndarray, r: np.ndarray) -> None:
         """Steady-state offsets between where the vehicle settles and where the model says it
@@ -1061,6 +1086,11 @@ class VehicleEngine:
 
     def _predict(self, e: Estimate) -> None:
         """Attach the anticipated path to ``e`` (or say why there is none)."""
+        run(self.prediction_steps(e))
+
+    def prediction_steps(self, e: Estimate):
+        """:meth:`_predict` as steps: a generator of the requests of its costliest solves
+        (:func:`~cloe_ros.core.anticipation.run_together` batches those of many vehicles)."""
         theta, coupling = e.model
         unstable = unstable_blocks(theta, coupling)
         if unstable:
@@ -1089,13 +1119,14 @@ class VehicleEngine:
             plan = plan_references(e.reference, ((stamps - e.stamp_ns) / NS, refs),
                                    ant.starts)  # fmt: skip
         # the future reference: the plan, else the intent; untracked channels: the virtual one
-        path, _ = ant.reference_path(t, e.measured, plan)
+        path, _ = yield from ant.reference_path_steps(t, e.measured, plan)
         path += shift
         states = self._predictor.predict(
             e.zeta_hat, theta, coupling, path[0], (ant.starts, path), offsets
         )
         center = e.zeta_hat[[0, 4, 10]], e.zeta_hat[[1, 5, 11]]
-        anticipation = ant.combine(t, states[:, POSITION], e.measured, coupling, center)
+        anticipation = yield from ant.combine_steps(t, states[:, POSITION], e.measured, coupling,
+                                                    center)  # fmt: skip
         states[:, POSITION] = anticipation.positions
         step_ns = round(self.config.prediction.step * NS)
         stamps = e.stamp_ns + step_ns * np.arange(1, len(states) + 1, dtype=np.int64)

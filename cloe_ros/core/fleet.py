@@ -6,7 +6,10 @@ where the estimators live: the vehicles whose estimator settings agree are rows 
 (an :class:`EstimatorPool`, see :mod:`cloe_ros.core.rows`), and :meth:`Fleet.advance` runs in
 rounds, each round one grid step of every vehicle that is due, in one batched call per pool. A
 vehicle behind the others (its inputs came late) catches up over the next rounds, alone or with
-the others that are still due.
+the others that are still due. Besides the estimator step, a round batches the error statistics
+of the vehicles that stepped (:meth:`~cloe_ros.core.covariance.ErrorCovariance.update_many`) and
+the costliest solves of the predictions due (:func:`~cloe_ros.core.anticipation.run_together`),
+which run at the end of the round, before any of those vehicles steps again.
 
 The estimates are the ones each vehicle gets alone (every operation is per row; the test suite
 checks it to 1e-9), so the node, ``cloe infer`` and ``cloe evaluate`` agree whatever the batching.
@@ -23,6 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cloe_ros.core.anticipation import run_together
 from cloe_ros.core.covariance import ErrorCovariance
 from cloe_ros.core.rows import Rows
 
@@ -187,6 +191,7 @@ class Fleet:
                     where = id(est.pool) if isinstance(est, PooledEstimator) else id(engine)
                     batches.setdefault(where, []).append((engine, step))
             engines = []
+            deferred: list[tuple[VehicleEngine, Estimate]] = []
             for batch in batches.values():
                 first, step = batch[0]
                 est = first.estimator
@@ -203,8 +208,20 @@ class Fleet:
                 else:
                     ok = first.step_alone(step)
                 for (engine, step), variance in zip(batch, variances):
-                    if engine.complete_step(step, ok, out[engine.name], variance):
+                    if engine.complete_step(step, ok, out[engine.name], variance, defer=True):
                         engines.append(engine)
+                        e = engine.take_deferred()
+                        if e is not None:
+                            deferred.append((engine, e))
+            if deferred:  # the predictions due this round, side by side
+                values = run_together([engine.prediction_steps(e) for engine, e in deferred])
+                for (engine, e), value in zip(deferred, values):
+                    if isinstance(value, BaseException):  # as a failure of the step
+                        of_vehicle = out[engine.name]
+                        if of_vehicle and of_vehicle[-1] is e:
+                            of_vehicle.pop()
+                        engine.prediction_failed(e)
+                        engines.remove(engine)
         return {name: estimates for name, estimates in out.items() if estimates}
 
 

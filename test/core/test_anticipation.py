@@ -10,13 +10,17 @@ from cloe_ros.core.anticipation import (
     AnticipationConfig,
     CoverageRadius,
     Ensemble,
+    HarmonicFits,
     History,
+    SimplexWeights,
     VirtualReference,
     clip_to_envelope,
     harmonic_fit,
     harmonic_fits,
     last_jump,
     linear_fit,
+    run,
+    run_together,
     simplex_weights,
     turn_positions,
 )
@@ -242,3 +246,41 @@ def test_invalid_settings_are_refused_by_name():
         AnticipationConfig(coverage=1.5)
     with pytest.raises(ConfigError, match='trust_ratio'):
         AnticipationConfig(trust_ratio=float('nan'))
+
+
+def _solves(s, y, t, ahead, omegas):
+    """Steps of two requests, the second built from the first's answer (as a prediction's)."""
+    w = yield SimplexWeights(s, np.ones(s.shape[1], dtype=bool))
+    separate, joint = yield HarmonicFits(t, y * (1.0 + w[0, 0]), ahead, omegas, np.array([0, 1]))
+    return w, separate, joint
+
+
+def test_requests_of_many_answered_together_get_the_answers_each_gets_alone():
+    rng = np.random.default_rng(6)
+    t = np.linspace(-6.0, 0.0, 121)
+    ahead, omegas = np.linspace(0.0, 3.0, 7), 2 * np.pi / np.geomspace(1.5, 30.0, 60)
+    problems = []
+    for _ in range(5):
+        a = rng.standard_normal((30, 4, 3))
+        y = np.column_stack([np.cos(rng.uniform(0.3, 2) * t), np.sin(t), t, 0 * t + 1])
+        problems.append((a @ np.swapaxes(a, 1, 2), y + 0.01 * rng.standard_normal(y.shape)))
+    together = run_together([_solves(s, y, t, ahead, omegas) for s, y in problems])
+    for (s, y), got in zip(problems, together):
+        for a, b in zip(got, run(_solves(s, y, t, ahead, omegas))):
+            np.testing.assert_array_equal(a, b)
+
+
+def _fit(t, y):
+    yield HarmonicFits(t, y, np.linspace(0.0, 1.0, 3), np.array([1.0, 2.0]), np.array([0, 1]))
+    return 'fitted'
+
+
+def test_a_request_that_fails_fails_only_its_own_steps():
+    t = np.linspace(-3.0, 0.0, 31)
+    y = np.column_stack([np.cos(t), np.sin(t)])
+    # the same kind and shape of request, but one's times do not match its samples: the batched
+    # call fails, and each is answered again alone
+    values = run_together([_fit(t, y), _fit(t[:-1], y), _fit(t, 2 * y)],
+                          failures=(ValueError,))  # fmt: skip
+    assert values[0] == values[2] == 'fitted'
+    assert isinstance(values[1], ValueError)

@@ -205,12 +205,25 @@ def unstable_blocks(
 ) -> list[str]:
     """Names of the blocks of ``A(Theta, c)`` with a pole at real part >= -margin (one vehicle)."""
     a, _ = system_matrices(theta, coupling)
+    unstable = set()
+    for blocks, rows, cols in _BLOCKS_BY_ORDER:  # the blocks of one order in one call
+        poles = np.linalg.eigvals(a[rows, cols])  # (blocks, order)
+        unstable.update(b.name for b, p in zip(blocks, poles) if np.max(p.real) >= -margin)
+    return [b.name for b in BLOCKS if b.name in unstable]
+
+
+def _blocks_by_order() -> list[tuple[list, np.ndarray, np.ndarray]]:
+    """The blocks grouped by order, with the indices that take their (order, order) matrices
+    out of ``A`` at once."""
     out = []
-    for block in BLOCKS:
-        idx = np.array(block.states)
-        if np.max(np.linalg.eigvals(a[np.ix_(idx, idx)]).real) >= -margin:
-            out.append(block.name)
+    for order in sorted({b.order for b in BLOCKS}):
+        blocks = [b for b in BLOCKS if b.order == order]
+        states = np.array([b.states for b in blocks])  # (blocks, order)
+        out.append((blocks, states[:, :, None], states[:, None, :]))
     return out
+
+
+_BLOCKS_BY_ORDER = _blocks_by_order()
 
 
 def parameters_from_matrices(a: np.ndarray, b: np.ndarray) -> np.ndarray:

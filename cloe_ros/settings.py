@@ -316,8 +316,8 @@ SETTINGS: dict[str, Setting] = {s.name: s for s in (
     Setting('diagnostics_period', 1.0, '/diagnostics period, s', range=(0.05, 60.0), **_RO),
     Setting('batch_period', 0.005, 'the vehicles with new input are stepped together, one '
             'batched estimator call per grid step, as soon as every vehicle has new input and '
-            'at the latest every batch_period, s of wall time; 0: each vehicle at each of its '
-            'messages, alone', range=(0.0, 0.1), **_RO),
+            'at the latest 1.5 batch_period, s of wall time, after the first input; 0: each '
+            'vehicle at each of its messages, alone', range=(0.0, 0.1), **_RO),
     Setting('qos_reliability', 'reliable', 'QoS reliability of the subscriptions: reliable or '
             'best_effort', choices=('reliable', 'best_effort'), **_RO),
     Setting('qos_depth', 1000, 'QoS history depth of the subscriptions (10 s of 100 Hz odometry: '

@@ -8,9 +8,10 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
 * runs a :class:`cloe_ros.core.engine.VehicleEngine` in fixed steps of message time (header
   stamps; never the wall clock). The engines are one :class:`cloe_ros.core.fleet.Fleet`: the
   vehicles with new input step together, one batched estimator call per grid step, as soon as
-  every vehicle has new input and at the latest every ``batch_period`` of wall time
-  (``batch_period`` 0: each vehicle alone at each of its messages; the estimates are the same
-  either way);
+  every vehicle has new input and at the latest 1.5 ``batch_period`` of wall time after the
+  first input (the batch timer runs every ``batch_period`` and steps a batch whose first input
+  has waited half of it; ``batch_period`` 0: each vehicle alone at each of its messages; the
+  estimates are the same either way);
 * publishes ``<ns>/<output_ns>/state`` (nav_msgs/Odometry) every step,
   ``<ns>/<output_ns>/parameters`` (std_msgs/Float64MultiArray, labelled) at ``parameters_rate`` and
   ``<ns>/<output_ns>/prediction`` (nav_msgs/Path, poses at future stamps) at ``prediction_rate``;
@@ -101,6 +102,7 @@ class InferenceNode(Node):
         # inputs since then
         self._due: dict[str, None] = {}
         self._inputs = 0
+        self._due_since = 0.0  # wall (monotonic) time of the first input of this batch
         self.encoders: dict[str, OutputEncoder] = {}
         self.publishers_: dict[str, object] = {}
         self.malformed: dict[str, int] = {}
@@ -119,7 +121,7 @@ class InferenceNode(Node):
                 self._add_vehicle(v)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._batch_timer = (
-            self.create_timer(self.batch_period, self._step_due, clock=steady)
+            self.create_timer(self.batch_period, self._step_waiting, clock=steady)
             if self.batch_period > 0 else None
         )  # fmt: skip
         self._graph_timer = self.create_timer(
@@ -463,6 +465,8 @@ class InferenceNode(Node):
         if self._batch_timer is None:
             self._publish_all(self.fleet.advance([vehicle]))
         else:
+            if not self._due:
+                self._due_since = time.monotonic()
             self._due[vehicle] = None
             self._inputs += 1
             # a batch at once when every vehicle has new input (or twice as many inputs came as
@@ -470,6 +474,14 @@ class InferenceNode(Node):
             # when the executor serves the inputs before the timer (a node behind its inputs)
             if len(self._due) == len(self.engines) or self._inputs >= 2 * len(self.engines):
                 self._step_due()
+
+    def _step_waiting(self) -> None:
+        """The batch timer: step the vehicles with new input if the first has waited half a
+        ``batch_period`` (so that a tick in the middle of a burst of inputs, the vehicles'
+        messages of one instant, does not split it: a vehicle stepped without the others of
+        its pool costs a copy of its estimator out of the pool and back)."""
+        if self._due and time.monotonic() - self._due_since >= 0.5 * self.batch_period:
+            self._step_due()
 
     def _step_due(self) -> None:
         """The batch: step every vehicle with new input together (Fleet.advance), publish."""

@@ -967,11 +967,16 @@ class Anticipator:
         self._scored_to = t
         hist = self.history
         truth = lambda times: hist.at(times, 'measured', POSITION)  # noqa: E731
-        for t0, ks, sq in self.guard.score(since, t, truth):
-            key = round(t0, 6)
-            if key in self._radii:
-                self.radius.update(ks, np.sqrt(sq[-1]), self._radii[key][ks],
-                                   self._scales[key][ks])  # fmt: skip
+        scored = [(ks, np.sqrt(sq[-1]), self._radii[key][ks], self._scales[key][ks])
+                  for t0, ks, sq in self.guard.score(since, t, truth)
+                  if (key := round(t0, 6)) in self._radii]  # fmt: skip
+        horizons = np.concatenate([ks for ks, *_ in scored]) if scored else np.zeros(0, int)
+        if len(scored) > 1 and len(np.unique(horizons)) == len(horizons):
+            # each horizon scored once (as between two predictions): one update, the same
+            self.radius.update(horizons, *(np.concatenate(c) for c in list(zip(*scored))[1:]))
+        else:
+            for ks, errors, radii, scales in scored:
+                self.radius.update(ks, errors, radii, scales)
         for t0 in [k for k in self._radii if k + self.poses[-1] < t - 1e-6]:
             del self._radii[t0], self._scales[t0]
         self.intent_scores.score(since, t, lambda times: hist.at(times, 'logged',

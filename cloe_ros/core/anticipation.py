@@ -539,10 +539,12 @@ class Ensemble:
         self._pending[self._next] = paths
         self._next = (self._next + 1) % len(self._pending_t)
 
-    def score(self, since: float, now: float, truth) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    def score(
+        self, since: float, now: float, truth, detail: bool = True
+    ) -> list[tuple[float, np.ndarray, np.ndarray]]:
         """Score the poses whose times fall in ``(since, now]``; ``truth(times (...,))`` gives
         their true values (..., D), NaN where unknown. Returns, per scored prediction,
-        ``(issue time, horizon indices, squared errors (M, k))``."""
+        ``(issue time, horizon indices, squared errors (M, k))`` (nothing unless ``detail``)."""
         out = []
         live = np.flatnonzero(np.isfinite(self._pending_t))
         issued = self._pending_t[live]
@@ -560,13 +562,18 @@ class Ensemble:
             return out
         err = self._pending[live[rows], :, ks] - actual[:, None, :]  # (n, M, D)
         cross = np.einsum('pmd,pnd->pmn', err, err)
-        squared = np.einsum('pmd,pmd->pm', err, err)
         # each horizon's scores weighed in in the predictions' order: the first score of every
         # horizon at once, then the second (a horizon scored twice in one call), ...
-        repeat = _occurrence(ks)
-        for j in range(int(repeat.max()) + 1):
-            take = repeat == j
-            self._accumulate(ks[take], cross[take])
+        if np.bincount(ks).max() == 1:  # (each once, as between two predictions)
+            self._accumulate(ks, cross)
+        else:
+            repeat = _occurrence(ks)
+            for j in range(int(repeat.max()) + 1):
+                take = repeat == j
+                self._accumulate(ks[take], cross[take])
+        if not detail:
+            return out
+        squared = np.einsum('pmd,pmd->pm', err, err)
         starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
         for a, b in zip(starts, [*starts[1:], len(rows)]):
             out.append((issued[rows[a]], ks[a:b], squared[a:b].T))
@@ -979,8 +986,8 @@ class Anticipator:
                 self.radius.update(ks, errors, radii, scales)
         for t0 in [k for k in self._radii if k + self.poses[-1] < t - 1e-6]:
             del self._radii[t0], self._scales[t0]
-        self.intent_scores.score(since, t, lambda times: hist.at(times, 'logged',
-                                                                  POSITION_CHANNELS))  # fmt: skip
+        logged = lambda times: hist.at(times, 'logged', POSITION_CHANNELS)  # noqa: E731
+        self.intent_scores.score(since, t, logged, detail=False)
         self.virtual.update(*system_matrices(theta, coupling), BLOCKS)
         self._update_trust(t, theta, coupling)
 

@@ -149,6 +149,40 @@ def test_a_vehicle_that_diverges_in_a_batch_restarts_alone(flight):
     assert_same(out['/a'], want[: len(out['/a'])])
 
 
+def test_a_prediction_that_fails_in_a_round_fails_that_vehicles_step_alone(flight, monkeypatch):
+    """A vehicle's deferred prediction raising a numerical failure (forced here, once): that
+    step's estimate is not published and the vehicle restarts, as when its step fails; the other
+    vehicle's predictions, run side by side with it, are those it gets alone."""
+    vehicles = swarm(flight)[:2]
+    fleet = Fleet()
+    for name, config, _ in vehicles:
+        fleet.add(VehicleEngine(config, name=name))
+    b = fleet.engines['/b']
+    steps = VehicleEngine.prediction_steps
+    failed = []
+
+    def failing(engine, e):
+        if engine is b and not failed and engine.stats.predictions >= 10:
+            failed.append(e.stamp_ns)
+            yield from steps(engine, e)  # its requests are answered with the others' ...
+            raise np.linalg.LinAlgError('forced')  # ... and then it fails
+        return (yield from steps(engine, e))
+
+    monkeypatch.setattr(VehicleEngine, 'prediction_steps', failing)
+    out = {name: [] for name, _, _ in vehicles}
+    for name, kind, m in merged(vehicles):
+        feed(fleet.engines[name], kind, m)
+        for v, estimates in fleet.advance().items():
+            out[v] += estimates
+    assert len(failed) == 1
+    assert b.stats.diverged == 1 and fleet.engines['/a'].stats.diverged == 0
+    assert failed[0] not in [e.stamp_ns for e in out['/b']]
+    stamps = [e.stamp_ns for e in out['/b']]
+    assert stamps == sorted(stamps) and len(out['/b']) > 100
+    want = alone(vehicles[:1])['/a']
+    assert_same(out['/a'], want[: len(out['/a'])])
+
+
 def test_a_vehicle_with_other_settings_gets_a_pool_of_its_own(flight):
     """Changed gains of one vehicle move its estimator, state and all, out of the shared one."""
     odoms, refs = messages(flight)

@@ -25,6 +25,10 @@ ODOM_RATE = 50.0
 N_ODOM = round(DURATION * ODOM_RATE) + 1
 
 
+def _ns(stamp) -> int:
+    return stamp.sec * NS + stamp.nanosec
+
+
 def test_sim_with_use_sim_time_publishes_its_clock_and_finishes(tmp_path) -> None:
     """use_sim_time + publish_clock: /odom and /clock come (same stamps, simulated time from a
     system-time origin) and shutdown_when_done ends the process after the duration."""
@@ -44,17 +48,22 @@ def test_sim_with_use_sim_time_publishes_its_clock_and_finishes(tmp_path) -> Non
             assert done, sim.output()
             # (the simulator exits once its samples are acknowledged: they are in this
             # process's queue, the executor may not have taken them yet)
-            spin_until(ros.executor, lambda: len(odom) >= N_ODOM and len(clock) >= N_ODOM, 60.0)
+            spin_until(ros.executor, lambda: len(odom) >= N_ODOM and clock and
+                       _ns(clock[-1].clock) == _ns(odom[-1].header.stamp), 60.0)  # fmt: skip
             assert sim.proc.returncode == 0, sim.output()
             output = sim.output()
         finally:
             sim.stop(signal.SIGKILL)
     assert f'done: {DURATION:g} s simulated in ' in output
     assert 'real-time factor ' in output and 'asked 4)' in output
-    stamps = [m.header.stamp.sec * NS + m.header.stamp.nanosec for m in odom]
-    ticks = [m.clock.sec * NS + m.clock.nanosec for m in clock]
+    stamps = [_ns(m.header.stamp) for m in odom]
+    ticks = [_ns(m.clock) for m in clock]
     assert len(stamps) == N_ODOM
-    assert ticks == stamps  # /clock ticks with every odometry sample
+    # /clock ticks with every odometry sample, from the first tick this subscription got on: the
+    # simulator waits for the subscribers of /odom and /reference, and under load the /clock
+    # subscription can be matched some ticks later (a volatile topic keeps nothing for it)
+    print(f'/clock: {len(ticks)} ticks of {len(stamps)} odometry stamps')
+    assert ticks and ticks == stamps[len(stamps) - len(ticks):]
     assert stamps[0] > 1_600_000_000 * NS  # origin: the system time at start, not 0
     assert stamps[-1] - stamps[0] == round(DURATION * NS)
 

@@ -323,13 +323,10 @@ class Intent:
         self.window = window
         self.ahead = np.asarray(ahead, float)
 
-    def candidates(self, t: np.ndarray, r: np.ndarray) -> np.ndarray:
-        """(len(INTENT_MODELS), K, 4) futures of the references ``r`` (T, 4) sampled at ``t``
-        (T,) s, the last sample being now."""
-        return run(self.candidates_steps(t, r))
-
     def candidates_steps(self, t: np.ndarray, r: np.ndarray):
-        """:meth:`candidates` as steps (see :func:`run`): the harmonic fit is a request."""
+        """(len(INTENT_MODELS), K, 4) futures of the references ``r`` (T, 4) sampled at ``t``
+        (T,) s, the last sample being now; as steps (see :func:`run`): the harmonic fit is a
+        request."""
         k = len(self.ahead)
         out = np.broadcast_to(r[-1], (len(INTENT_MODELS), k, 4)).copy()
         now = t[-1]
@@ -886,9 +883,10 @@ class Anticipator:
     """Intent, trust, guard and radius of one vehicle (module docstring).
 
     The engine calls :meth:`observe` at every estimator step and, when a prediction is due,
-    :meth:`reference_path` (the future reference to drive the closed loop with), then
-    :meth:`combine` with the closed loop's positions. :meth:`reference_for_estimator` gives the
-    reference the estimator should use at a step.
+    :meth:`reference_path_steps` (the future reference to drive the closed loop with), then
+    :meth:`combine_steps` with the closed loop's positions (generators of their costliest solves:
+    :func:`run`, :func:`run_together`). :meth:`reference_for_estimator` gives the reference the
+    estimator should use at a step.
 
     Args:
         config: Settings.
@@ -1050,17 +1048,11 @@ class Anticipator:
 
     # ------------------------------------------------------------------- predictions
 
-    def reference_path(
-        self, t: float, zeta: np.ndarray, plan: np.ndarray | None
-    ) -> tuple[np.ndarray, np.ndarray | None]:
+    def reference_path_steps(self, t: float, zeta: np.ndarray, plan: np.ndarray | None):
         """The references (K, 4) over the steps of the next prediction from ``t`` (their starts):
         ``plan`` (K, 4) when given, else the intent (or the reference held, without intent);
         untracked channels take the virtual reference of ``zeta``, held. Also returns the intent
-        candidates (M, K, 4) (None with a plan)."""
-        return run(self.reference_path_steps(t, zeta, plan))
-
-    def reference_path_steps(self, t: float, zeta: np.ndarray, plan: np.ndarray | None):
-        """:meth:`reference_path` as steps (see :func:`run`)."""
+        candidates (M, K, 4) (None with a plan). As steps (see :func:`run`)."""
         hist = self.history
         idx = hist.last(self.config.intent_window + 0.5)
         logged = hist.logged[idx]
@@ -1079,18 +1071,13 @@ class Anticipator:
             path[:, untracked] = self.virtual.of(zeta)[untracked]
         return path, candidates
 
-    def combine(self, t: float, model_positions: np.ndarray, measured: np.ndarray,
-                coupling: np.ndarray,
-                center: tuple[np.ndarray, np.ndarray] | None = None) -> Anticipation:  # fmt: skip
-        """The published prediction from ``t``: the candidates (the closed loop's
-        ``model_positions`` (K, 3) and the reference-free ones from the ``measured`` state)
-        combined by the guard, within the physical envelope about ``center`` (the estimated
-        position and velocity; default: the measured ones), with the radius."""
-        return run(self.combine_steps(t, model_positions, measured, coupling, center))
-
     def combine_steps(self, t: float, model_positions: np.ndarray, measured: np.ndarray,
                       coupling: np.ndarray, center: tuple | None = None):  # fmt: skip
-        """:meth:`combine` as steps (see :func:`run`)."""
+        """The published prediction (an :class:`Anticipation`) from ``t``: the candidates (the
+        closed loop's ``model_positions`` (K, 3) and the reference-free ones from the
+        ``measured`` state) combined by the guard, within the physical envelope about ``center``
+        (the estimated position and velocity; default: the measured ones), with the radius. As
+        steps (see :func:`run`)."""
         cfg = self.config
         hist = self.history
         paths = np.empty((len(CANDIDATES) + 1, len(self.poses), 3))

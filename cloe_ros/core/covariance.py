@@ -123,7 +123,7 @@ class ErrorCovariance:
 
     def reset(self) -> None:
         """Back to the prior: the statistics start over (a reset estimator)."""
-        # one vector per vehicle (see _SM ... _H): E[e^2], R, C, the variance, the forgetting
+        # one vector per vehicle (see _SM ... _ZH): E[e^2], R, C, the variance, the forgetting
         # rho of the last full difference, and the last four measurements and estimates
         self._state = np.zeros(_STATE_SIZE)
         self._state[_VAR] = self.prior

@@ -48,6 +48,7 @@ source, published before its odometry, is so kept for the new timeline.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import Counter, deque
 from collections.abc import Callable
@@ -73,6 +74,7 @@ from cloe_ros.core.kinematics import (
     quaternion_yaw_one,
     roll_pitch_one,
     unwrap_near,
+    unwrap_near_one,
 )
 from cloe_ros.core.model import QUADROTOR_MAX_RATE, QUADROTOR_MAX_SPEED, unstable_blocks
 from cloe_ros.core.prediction import PredictionConfig, Predictor, plan_references
@@ -332,10 +334,12 @@ class VehicleEngine:
         self._predictor = Predictor(config.prediction)
         self._prediction_slot: int | None = None
         self._last_r: np.ndarray | None = None
-        self._offset = np.zeros(4)  # steady-state offsets per reference channel (predictions)
-        self._offset_prev_r: np.ndarray | None = None
-        self._ref_rate = np.ones(4)  # (m/s, rad/s: "moving" until measured still)
-        self._gains = np.ones(4)
+        # steady-state offsets per reference channel, for the predictions (_track_offsets: four
+        # numbers each, kept as floats, a step's arithmetic in Python being cheaper than numpy's)
+        self._offset = [0.0] * 4
+        self._offset_prev_r: list[float] | None = None
+        self._ref_rate = [1.0] * 4  # (m/s, rad/s: "moving" until measured still)
+        self._gains = [1.0] * 4
         # recent estimates and references, every prediction step, for the recent-offset fit
         self._every = max(1, round(config.prediction.step * config.rate))
         self._window = math.ceil(config.prediction.disturbance_time * config.rate / self._every)
@@ -347,6 +351,7 @@ class VehicleEngine:
         self._interval_ns: float | None = None  # typical odometry interval
         # the latest odometry gaps, for the stream's interval (_count_missing)
         self._gaps: deque[int] = deque(maxlen=MISSING_WINDOW)
+        self._gaps_sorted: list[int] = []  # the same, in increasing order
         self._gaps_waiting: list[tuple[int, int]] = []  # (gap, rejected in it), not counted yet
         # stamps of odometry rejected, not yet passed by the accepted stream
         self._rejected_stamps: deque[int] = deque(maxlen=MAX_REJECTED_STAMPS)
@@ -430,12 +435,14 @@ class VehicleEngine:
 
     def _odometry_problem(self, sample: OdometrySample) -> tuple[str, str] | None:
         """(reason, detail) if the sample's values or frame are unusable."""
-        p, q, v, w = sample.position, sample.orientation, sample.linear, sample.angular
-        if not np.isfinite(np.concatenate((p, q, v, w))).all():
+        # (13 numbers: Python's float math is cheaper than numpy's calls on them)
+        p, q, v, w = (a.tolist() for a in (sample.position, sample.orientation, sample.linear,
+                                           sample.angular))  # fmt: skip
+        if not all(map(math.isfinite, (*p, *q, *v, *w))):
             fields = zip(('position', 'orientation', 'linear', 'angular'), (p, q, v, w))
-            bad = ', '.join(n for n, a in fields if not np.isfinite(a).all())
+            bad = ', '.join(n for n, a in fields if not all(map(math.isfinite, a)))
             return 'non-finite odometry', f'in {bad}'
-        norm = math.sqrt(float(q @ q))
+        norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         if abs(norm - 1.0) > self.config.quaternion_tolerance:
             return 'invalid quaternion', f'norm {norm:.6g}'
         for name, values, bound, unit in (
@@ -443,7 +450,7 @@ class VehicleEngine:
             ('velocity', v, MAX_SPEED, 'm/s'),
             ('angular rate', w, MAX_RATE, 'rad/s'),
         ):
-            largest = max(map(abs, values.tolist()))  # (3 values: faster than numpy's max)
+            largest = max(map(abs, values))
             if largest > bound:
                 return f'{name} beyond {bound:g} {unit}', f'{largest:.6g} {unit}'
         roll, pitch = roll_pitch_one(q)
@@ -531,16 +538,18 @@ class VehicleEngine:
             )
         if dt <= 0:
             return
-        gaps = self._gaps
+        gaps, ordered = self._gaps, self._gaps_sorted
+        if len(gaps) == gaps.maxlen:
+            del ordered[bisect.bisect_left(ordered, gaps[0])]  # (the gap about to drop out)
         gaps.append(dt)
-        limit = 2 * min(gaps)
-        short = sorted([g for g in gaps if g <= limit])
+        bisect.insort(ordered, dt)
+        short = bisect.bisect_right(ordered, 2 * ordered[0])  # ordered[:short]: the short gaps
         waiting = self._gaps_waiting
-        if len(short) < MISSING_BASIS:
+        if short < MISSING_BASIS:
             if len(waiting) < MAX_GAPS_WAITING:
                 waiting.append((dt, inside))
             return
-        regular = short[len(short) // 2]
+        regular = ordered[short // 2]
         waiting.append((dt, inside))
         for gap, arrived in waiting:
             if gap > MISSING_INTERVALS * regular:
@@ -568,7 +577,7 @@ class VehicleEngine:
             sample.position, sample.orientation, sample.linear, sample.angular
         )
         if self._yaw is not None:
-            zeta[8] = unwrap_near(zeta[8], self._yaw)
+            zeta[8] = unwrap_near_one(float(zeta[8]), self._yaw)
         self._yaw = float(zeta[8])
         if not self.child_frame:
             self.child_frame = sample.child_frame_id
@@ -592,13 +601,14 @@ class VehicleEngine:
         decides (module docstring)."""
         self.stats.reference_received += 1
         q = sample.orientation
-        if not (np.isfinite(sample.position).all() and np.isfinite(q).all()):
-            bad = 'position' if not np.isfinite(sample.position).all() else 'orientation'
+        p, qs = sample.position.tolist(), q.tolist()
+        if not all(map(math.isfinite, (*p, *qs))):
+            bad = 'position' if not all(map(math.isfinite, p)) else 'orientation'
             return self._reject('non-finite reference', f'in {bad}')
         norm = math.sqrt(float(q @ q))
         if abs(norm - 1.0) > self.config.quaternion_tolerance:
             return self._reject('invalid reference quaternion', f'norm {norm:.6g}')
-        largest = float(np.max(np.abs(sample.position)))
+        largest = max(map(abs, p))
         if largest > MAX_POSITION:
             return self._reject(
                 f'reference position beyond {MAX_POSITION:g} m', f'{largest:.6g} m'
@@ -607,8 +617,7 @@ class VehicleEngine:
         if wrong:
             return self._reject('wrong reference frame', wrong)
         stamp, gap = sample.stamp_ns, self.config.max_gap * NS
-        p = sample.position
-        x, y, z, w = (float(c) / (norm if abs(norm - 1.0) > ROUNDOFF else 1.0) for c in q)
+        x, y, z, w = (c / (norm if abs(norm - 1.0) > ROUNDOFF else 1.0) for c in qs)
         yaw = quaternion_yaw_one((x, y, z, w))
         entry = (stamp, np.array([p[0], p[1], yaw, p[2]]))
         held = self._held_refs
@@ -866,7 +875,7 @@ class VehicleEngine:
         if not refs or refs[0][0] > t_ns:
             return None
         r = refs[0][1].copy()
-        r[2] = unwrap_near(r[2], yaw_now)
+        r[2] = unwrap_near_one(float(r[2]), float(yaw_now))
         return r
 
     def _reference_complete(self, t_ns: int) -> bool:
@@ -1073,16 +1082,17 @@ class VehicleEngine:
         0.05 rad/s), and held while it moves, when ``pos - g r`` is tracking lag, not offset.
         """
         h = self.config.step_ns / NS
-        if self._offset_prev_r is None:
-            self._offset_prev_r = r.copy()
+        r = r.tolist()
+        previous, self._offset_prev_r = self._offset_prev_r, r
+        if previous is None:
             return
-        rate = np.abs(r - self._offset_prev_r) / h
-        self._offset_prev_r = r.copy()
-        self._ref_rate += min(1.0, h / 0.5) * (rate - self._ref_rate)
-        still = self._ref_rate < 0.05
-        pos = zeta[[0, 4, 8, 10]]
-        error = pos - self._gains * r - self._offset
-        self._offset += np.where(still, min(1.0, h / 2.0) * error, 0.0)
+        a_rate, a_offset = min(1.0, h / 0.5), min(1.0, h / 2.0)
+        rates, offset, gains = self._ref_rate, self._offset, self._gains
+        z = zeta.tolist()
+        for c, pos in enumerate((z[0], z[4], z[8], z[10])):
+            rates[c] += a_rate * (abs(r[c] - previous[c]) / h - rates[c])
+            if rates[c] < 0.05:
+                offset[c] += a_offset * (pos - gains[c] * r[c] - offset[c])
 
     def _predict(self, e: Estimate) -> None:
         """Attach the anticipated path to ``e`` (or say why there is none)."""
@@ -1107,8 +1117,9 @@ class VehicleEngine:
         tracked = ant.trust.followed
         # the reference, shifted by the steady-state offsets (see _track_offsets) where tracked
         gains = self._predictor.static_gains(theta, coupling)
-        self._gains = gains
-        shift = np.divide(self._offset, gains, out=np.zeros(4), where=np.abs(gains) > 0.1)
+        self._gains = gains.tolist()
+        shift = np.divide(np.array(self._offset), gains, out=np.zeros(4),
+                          where=np.abs(gains) > 0.1)  # fmt: skip
         shift[~tracked] = 0.0
         offsets = self._recent_offsets(theta, coupling, shift)
         plan = None

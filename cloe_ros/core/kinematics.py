@@ -29,6 +29,18 @@ def unwrap_near(angle: np.ndarray | float, previous: np.ndarray | float) -> np.n
     return previous + wrap_angle(np.asarray(angle) - previous)
 
 
+def unwrap_near_one(angle: float, previous: float) -> float:
+    """:func:`unwrap_near` of two floats, with scalar math (the same arithmetic: Python's float
+    ``%`` is numpy's)."""
+    return previous + ((angle - previous + math.pi) % TWO_PI - math.pi)
+
+
+def _floats(values) -> list[float]:
+    """The entries of a short vector as Python floats (an array's through ``tolist``: far
+    cheaper than iterating it)."""
+    return values.tolist() if isinstance(values, np.ndarray) else [float(c) for c in values]
+
+
 def quaternion_to_euler(q: np.ndarray) -> np.ndarray:
     """ZYX Euler angles ``(roll, pitch, yaw)`` (..., 3) of unit quaternions ``(x, y, z, w)``."""
     x, y, z, w = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
@@ -164,7 +176,7 @@ def quaternion_yaw(q: np.ndarray) -> np.ndarray:
 def quaternion_to_euler_one(quaternion) -> tuple[float, float, float]:
     """:func:`quaternion_to_euler` for one unit quaternion ``(x, y, z, w)`` (not normalised
     here), with scalar math (the hot path of a single sample): ``(roll, pitch, yaw)``, rad."""
-    x, y, z, w = (float(c) for c in quaternion)
+    x, y, z, w = _floats(quaternion)
     roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
     pitch = math.asin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
@@ -178,7 +190,7 @@ def quaternion_yaw_one(quaternion) -> float:
 
 
 def _unit_one(quaternion) -> tuple[float, float, float, float]:
-    x, y, z, w = (float(c) for c in quaternion)
+    x, y, z, w = _floats(quaternion)
     norm = math.sqrt(x * x + y * y + z * z + w * w)
     return x / norm, y / norm, z / norm, w / norm
 
@@ -199,11 +211,11 @@ def odometry_to_state_one(
     cr, sr = math.cos(roll), math.sin(roll)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cy, sy = math.cos(yaw), math.sin(yaw)
-    u, v, wv = (float(c) for c in v_body)
+    u, v, wv = _floats(v_body)
     vx = cy * cp * u + (cy * sp * sr - sy * cr) * v + (cy * sp * cr + sy * sr) * wv
     vy = sy * cp * u + (sy * sp * sr + cy * cr) * v + (sy * sp * cr - cy * sr) * wv
     vz = -sp * u + cp * sr * v + cp * cr * wv
-    p, q, r = (float(c) for c in w_body)
+    p, q, r = _floats(w_body)
     s = q * sr + r * cr
     return np.array([
         position[0], vx, pitch, q * cr - r * sr,
@@ -223,7 +235,7 @@ def state_to_odometry_one(
 def state_to_odometry_floats(zeta) -> tuple[float, ...]:
     """:func:`state_to_odometry_one` as 13 floats: position (3), quaternion (x, y, z, w), body
     velocity (3), body rates (3), the order of an Odometry message's fields."""
-    x, vx, pitch, dpitch, y, vy, roll, droll, yaw, dyaw, z, vz = (float(c) for c in zeta)
+    x, vx, pitch, dpitch, y, vy, roll, droll, yaw, dyaw, z, vz = _floats(zeta)
     cr, sr = math.cos(roll), math.sin(roll)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cy, sy = math.cos(yaw), math.sin(yaw)

@@ -9,7 +9,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cloe_ros.core.engine import MAX_PLAN_POSES, NS, EngineConfig, VehicleEngine
+from cloe_ros.core.engine import (
+    MAX_PLAN_POSES,
+    MISSING_WINDOW,
+    NS,
+    EngineConfig,
+    VehicleEngine,
+)
 from cloe_ros.core.estimator import EstimatorConfig
 from cloe_ros.core.model import QUADROTOR_MAX_ACCELERATION, QUADROTOR_MAX_SPEED
 from cloe_ros.core.samples import MAX_STAMP_NS, PathSample
@@ -277,6 +283,27 @@ def test_missing_samples_are_counted_when_the_first_gap_was_a_hole(flight):
     run(engine, in_time_order(kept, refs))
     engine.finish()
     assert engine.stats.odom_missing == len(lost) == 349
+
+
+def test_the_interval_follows_a_stream_whose_rate_changes(flight):
+    """The interval is the median of the latest ``MISSING_WINDOW`` gaps: odometry at 100 Hz,
+    then at 50 Hz (the same samples stamped 20 ms apart), then 6 samples dropped alone, each
+    leaving a gap of two 50 Hz intervals. Until the 20 ms gaps are the window's median, each
+    reads as one 100 Hz sample missing (31 of them); after, each drop is one sample missing (not
+    three, as at 100 Hz), and the 100 Hz gaps that left the window count no more."""
+    odoms, refs = messages(flight)
+    t0 = odoms[0][0]
+    stamps = [t0 + 10_000_000 * i for i in range(300)]
+    stamps += [stamps[-1] + 20_000_000 * (i + 1) for i in range(400)]
+    dropped = {400 + 40 * k for k in range(6)}  # (the first 100 gaps after the change: kept)
+    kept = [(s, replace(m, stamp_ns=s)) for i, (s, (_, m)) in enumerate(zip(stamps, odoms))
+            if i not in dropped]  # fmt: skip
+    refs = [(s, replace(m, stamp_ns=s)) for s, (_, m) in zip(stamps[::2], refs)]
+    engine = VehicleEngine(EngineConfig())
+    run(engine, in_time_order(kept, refs))
+    engine.finish()
+    assert engine.stats.odom_missing == MISSING_WINDOW // 2 - 1 + len(dropped) == 31 + 6
+    assert not engine.stats.rejected
 
 
 def test_a_plan_is_refused_by_its_pose_count_alone(flight):

@@ -50,6 +50,7 @@ from cloe_ros.core.model import (
     QUADROTOR_MAX_ACCELERATION,
     QUADROTOR_MAX_SPEED,
     discretise,
+    propagate,
     system_matrices,
 )
 from cloe_ros.errors import ConfigError
@@ -411,9 +412,26 @@ class SimplexWeights:
         return ('simplex', self.s.shape[1])
 
 
+@dataclass(frozen=True)
+class Propagation:
+    """A request for the states (n, 12) of the discrete model ``(ad, bd)`` run from ``x0`` (12,)
+    over the references ``refs`` (n, 4) (:func:`~cloe_ros.core.model.propagate`)."""
+
+    ad: np.ndarray
+    bd: np.ndarray
+    x0: np.ndarray
+    refs: np.ndarray
+
+    def key(self) -> tuple:
+        return ('propagate', self.refs.shape)
+
+
 def answer(requests: list) -> list:
     """The answers of ``requests`` (all of one :meth:`key`), in one batched call."""
     first = requests[0]
+    if isinstance(first, Propagation):
+        return list(propagate(*(np.array([getattr(r, f) for r in requests])
+                                for f in ('ad', 'bd', 'x0', 'refs'))))  # fmt: skip
     if isinstance(first, HarmonicFits):
         separate, joint = harmonic_fits_batch(
             np.array([r.t for r in requests]), np.array([r.y for r in requests]), first.ahead,
@@ -883,9 +901,10 @@ class Anticipator:
     """Intent, trust, guard and radius of one vehicle (module docstring).
 
     The engine calls :meth:`observe` at every estimator step and, when a prediction is due,
-    :meth:`reference_path_steps` (the future reference to drive the closed loop with), then
-    :meth:`combine_steps` with the closed loop's positions (generators of their costliest solves:
-    :func:`run`, :func:`run_together`). :meth:`reference_for_estimator` gives the reference the
+    :meth:`update_steps` (the scores and the trust), :meth:`reference_path_steps` (the future
+    reference to drive the closed loop with), then :meth:`combine_steps` with the closed loop's
+    positions (generators of their costliest solves and model runs: :func:`run`,
+    :func:`run_together`). :meth:`reference_for_estimator` gives the reference the
     estimator should use at a step.
 
     Args:
@@ -965,9 +984,9 @@ class Anticipator:
         self.history.append(t, measured, estimate, used, logged)
         self.trust.set_commanded_altitude(float(logged[3]))
 
-    def update(self, t: float, theta: np.ndarray, coupling: np.ndarray) -> None:
+    def update_steps(self, t: float, theta: np.ndarray, coupling: np.ndarray):
         """Score what has become due by ``t`` and update the reference trust, the model in use
-        being ``(theta, coupling)``."""
+        being ``(theta, coupling)``. As steps (see :func:`run`)."""
         since = -np.inf if self._scored_to is None else self._scored_to
         self._scored_to = t
         hist = self.history
@@ -987,7 +1006,7 @@ class Anticipator:
         logged = lambda times: hist.at(times, 'logged', POSITION_CHANNELS)  # noqa: E731
         self.intent_scores.score(since, t, logged, detail=False)
         self.virtual.update(*system_matrices(theta, coupling), BLOCKS)
-        self._update_trust(t, theta, coupling)
+        yield from self._update_trust_steps(t, theta, coupling)
 
     def _judging_model(self, t: float, theta: np.ndarray, coupling: np.ndarray) -> tuple:
         """The model each channel's reference is judged with (:class:`ReferenceTrust`): the
@@ -1017,8 +1036,9 @@ class Anticipator:
             self._judge = discretise(theta_j, coupling_j, self.step)
         return self._judge, (theta_j, coupling_j)
 
-    def _update_trust(self, t: float, theta: np.ndarray, coupling: np.ndarray) -> None:
-        """The hindsight replay of :class:`ReferenceTrust` over the last ``trust_horizon``."""
+    def _update_trust_steps(self, t: float, theta: np.ndarray, coupling: np.ndarray):
+        """The hindsight replay of :class:`ReferenceTrust` over the last ``trust_horizon``. As
+        steps (see :func:`run`): the replay is a request."""
         (ad, bd), judging = self._judging_model(t, theta, coupling)
         horizon = self.config.trust_horizon
         n = max(1, round(horizon / self.step))
@@ -1034,8 +1054,7 @@ class Anticipator:
         now = hist.at(np.array([t]), 'measured', list(range(12)))[0]
         if not (np.isfinite(refs).all() and np.isfinite(x).all() and np.isfinite(now).all()):
             return
-        for k in range(n):
-            x = ad @ x + bd @ refs[k]
+        x = (yield Propagation(ad, bd, x, refs))[-1]
         miss_ref = np.abs(x[CHANNEL_STATE] - now[CHANNEL_STATE])
         free = then[CHANNEL_STATE] + n * self.step * then[CHANNEL_RATE]
         miss_free = np.abs(free - now[CHANNEL_STATE])

@@ -1112,7 +1112,7 @@ class VehicleEngine:
             return
         ant = self._anticipator
         t = (e.stamp_ns - self._t0_ns) / NS
-        ant.update(t, theta, coupling)
+        yield from ant.update_steps(t, theta, coupling)
         self._trust = e.trust = ant.trust.status()
         tracked = ant.trust.followed
         # the reference, shifted by the steady-state offsets (see _track_offsets) where tracked
@@ -1132,7 +1132,7 @@ class VehicleEngine:
         # the future reference: the plan, else the intent; untracked channels: the virtual one
         path, _ = yield from ant.reference_path_steps(t, e.measured, plan)
         path += shift
-        states = self._predictor.predict(
+        states = yield from self._predictor.predict_steps(
             e.zeta_hat, theta, coupling, path[0], (ant.starts, path), offsets
         )
         center = e.zeta_hat[[0, 4, 10]], e.zeta_hat[[1, 5, 11]]

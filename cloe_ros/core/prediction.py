@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cloe_ros.core.anticipation import Propagation, run
 from cloe_ros.core.model import (
     BLOCKS,
     N_REFERENCES,
@@ -125,7 +126,11 @@ class Predictor:
             self._gains_key, self._gains = key, gains
         return self._gains
 
-    def predict(
+    def predict(self, *args, **kwargs) -> np.ndarray | None:
+        """:meth:`predict_steps` run at once (the arguments are its)."""
+        return run(self.predict_steps(*args, **kwargs))
+
+    def predict_steps(
         self,
         zeta0: np.ndarray,
         theta: np.ndarray,
@@ -133,8 +138,9 @@ class Predictor:
         r_now: np.ndarray,
         plan: tuple[np.ndarray, np.ndarray] | None = None,
         offsets: np.ndarray | None = None,
-    ) -> np.ndarray | None:
-        """States (n, 12) at ``t + step, ..., t + n step``; None if the model is unstable.
+    ):
+        """States (n, 12) at ``t + step, ..., t + n step``; None if the model is unstable. As
+        steps (:func:`~cloe_ros.core.anticipation.run`): the model's run is a request.
 
         Args:
             zeta0: Current estimate (12,).
@@ -156,12 +162,7 @@ class Predictor:
         refs = plan_references(r_now, plan, self.config.step * np.arange(n))
         if offsets is not None:
             refs += offsets
-        out = np.empty((n, N_STATES))
-        x = np.asarray(zeta0, dtype=float)
-        for k in range(n):
-            x = ad @ x + bd @ refs[k]
-            out[k] = x
-        return out
+        return (yield Propagation(ad, bd, np.asarray(zeta0, dtype=float), refs))
 
 
 def plan_references(

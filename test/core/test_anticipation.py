@@ -12,8 +12,10 @@ from cloe_ros.core.anticipation import (
     Ensemble,
     HarmonicFits,
     History,
+    Propagation,
     SimplexWeights,
     VirtualReference,
+    answer,
     clip_to_envelope,
     harmonic_fit,
     harmonic_fits,
@@ -24,7 +26,8 @@ from cloe_ros.core.anticipation import (
     simplex_weights,
     turn_positions,
 )
-from cloe_ros.core.model import BLOCKS, system_matrices
+from cloe_ros.core.identifier import cascade_prior
+from cloe_ros.core.model import BLOCKS, discretise, system_matrices
 from cloe_ros.errors import ConfigError
 
 
@@ -268,6 +271,26 @@ def test_requests_of_many_answered_together_get_the_answers_each_gets_alone():
     for (s, y), got in zip(problems, together):
         for a, b in zip(got, run(_solves(s, y, t, ahead, omegas))):
             np.testing.assert_array_equal(a, b)
+
+
+def test_model_runs_answered_together_are_each_bitwise_the_run_alone():
+    """Five models' runs over 50 steps in one stacked call: each the states of
+    ``x = ad @ x + bd @ r`` stepped for that model alone, bit for bit."""
+    rng = np.random.default_rng(7)
+    theta, coupling = cascade_prior()
+    requests = []
+    for _ in range(5):
+        ad, bd = discretise(theta * rng.uniform(0.8, 1.2, theta.shape), coupling, 0.1)
+        requests.append(Propagation(ad, bd, rng.standard_normal(12),
+                                    rng.standard_normal((50, 4))))  # fmt: skip
+    together = answer(requests)
+    for request, got in zip(requests, together):
+        x, want = request.x0, []
+        for r in request.refs:
+            x = request.ad @ x + request.bd @ r
+            want.append(x)
+        np.testing.assert_array_equal(got, np.array(want))
+        np.testing.assert_array_equal(got, answer([request])[0])
 
 
 def _fit(t, y):

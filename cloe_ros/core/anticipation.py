@@ -379,11 +379,13 @@ def simplex_weights(s: np.ndarray, allowed: np.ndarray, shrink: float = 0.1) -> 
 
 # ------------------------------------------------------------------------ requests
 #
-# The solves of a prediction that cost the most for their size (a least-squares fit per
-# frequency, the simplex weights) are written as steps: a generator yields a request and is sent
-# its answer. :func:`run` answers at once; :func:`run_together` drives the predictions of many
-# vehicles side by side and answers the requests of one kind and shape in one batched call,
-# each the answer it would get alone.
+# The solves and model runs of a prediction that cost the most for their size (a least-squares
+# fit per frequency, the simplex weights, the closed loop's run, the recent-offset fit) are
+# written as steps: a generator yields a request and is sent its answer. :func:`run` answers at
+# once; :func:`run_together` drives the predictions of many vehicles side by side and answers
+# the requests of one kind and shape in one batched call, each the answer it would get alone.
+# A request is a frozen dataclass with ``key()`` (requests of one key are batched) and the
+# class method ``answer_all(requests)`` (their answers, in order).
 
 
 @dataclass(frozen=True)
@@ -400,6 +402,14 @@ class HarmonicFits:
         return ('harmonic', self.y.shape, self.ahead.tobytes(), self.omegas.tobytes(),
                 self.joint.tobytes())  # fmt: skip
 
+    @classmethod
+    def answer_all(cls, requests: list) -> list:
+        first = requests[0]
+        separate, joint = harmonic_fits_batch(
+            np.array([r.t for r in requests]), np.array([r.y for r in requests]), first.ahead,
+            first.omegas, first.joint)  # fmt: skip
+        return list(zip(separate, joint))
+
 
 @dataclass(frozen=True)
 class SimplexWeights:
@@ -410,6 +420,13 @@ class SimplexWeights:
 
     def key(self) -> tuple:
         return ('simplex', self.s.shape[1])
+
+    @classmethod
+    def answer_all(cls, requests: list) -> list:
+        sizes = [len(r.s) for r in requests]
+        allowed = np.concatenate([np.broadcast_to(r.allowed, r.s.shape[:2]) for r in requests])
+        w = simplex_weights(np.concatenate([r.s for r in requests]), allowed)
+        return np.split(w, np.cumsum(sizes)[:-1])
 
 
 @dataclass(frozen=True)
@@ -425,22 +442,19 @@ class Propagation:
     def key(self) -> tuple:
         return ('propagate', self.refs.shape)
 
+    @classmethod
+    def answer_all(cls, requests: list) -> list:
+        return list(propagate(*stack_fields(requests, ('ad', 'bd', 'x0', 'refs'))))
+
+
+def stack_fields(requests: list, names: tuple[str, ...]) -> list[np.ndarray]:
+    """Each field ``names`` of ``requests`` (all of one shape), stacked: (len(requests), ...)."""
+    return [np.array([getattr(r, name) for r in requests]) for name in names]
+
 
 def answer(requests: list) -> list:
     """The answers of ``requests`` (all of one :meth:`key`), in one batched call."""
-    first = requests[0]
-    if isinstance(first, Propagation):
-        return list(propagate(*(np.array([getattr(r, f) for r in requests])
-                                for f in ('ad', 'bd', 'x0', 'refs'))))  # fmt: skip
-    if isinstance(first, HarmonicFits):
-        separate, joint = harmonic_fits_batch(
-            np.array([r.t for r in requests]), np.array([r.y for r in requests]), first.ahead,
-            first.omegas, first.joint)  # fmt: skip
-        return list(zip(separate, joint))
-    sizes = [len(r.s) for r in requests]
-    allowed = np.concatenate([np.broadcast_to(r.allowed, r.s.shape[:2]) for r in requests])
-    w = simplex_weights(np.concatenate([r.s for r in requests]), allowed)
-    return np.split(w, np.cumsum(sizes)[:-1])
+    return type(requests[0]).answer_all(requests)
 
 
 def run(steps):

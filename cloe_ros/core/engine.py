@@ -1121,7 +1121,7 @@ class VehicleEngine:
         shift = np.divide(np.array(self._offset), gains, out=np.zeros(4),
                           where=np.abs(gains) > 0.1)  # fmt: skip
         shift[~tracked] = 0.0
-        offsets = self._recent_offsets(theta, coupling, shift)
+        offsets = yield from self._recent_offsets_steps(theta, coupling, shift)
         plan = None
         if self._plan is not None and self._plan[0][-1] > e.stamp_ns:
             stamps, refs = self._plan
@@ -1167,11 +1167,10 @@ class VehicleEngine:
             e.prediction_status = PREDICTION_IDENTIFIED
             e.prediction_note = 'identified model'
 
-    def _recent_offsets(
-        self, theta: np.ndarray, coupling: np.ndarray, shift: np.ndarray
-    ) -> np.ndarray | None:
+    def _recent_offsets_steps(self, theta: np.ndarray, coupling: np.ndarray, shift: np.ndarray):
         """Model error over the last ``disturbance_time``, as reference offsets over the horizon
-        (n, 4) on top of the steady-state ``shift``; None until the window is full.
+        (n, 4) on top of the steady-state ``shift``; None until the window is full. As steps
+        (the fit is a request, see :meth:`prediction_steps`).
 
         The offset ``b`` with which the model best reproduces the recent estimates
         (:func:`~cloe_ros.core.prediction.fit_reference_offset`) replaces the steady-state shift
@@ -1186,8 +1185,9 @@ class VehicleEngine:
         pick = list(self._history)[:: self._every]
         states = np.array([p[0] for p in pick])
         refs = np.array([p[1] for p in pick]) + shift
-        b = self._predictor.recent_offset(theta, coupling, states, refs,
-                                          self._every / self.config.rate)  # fmt: skip
+        b = yield from self._predictor.recent_offset_steps(
+            theta, coupling, states, refs, self._every / self.config.rate
+        )
         config = self.config.prediction
         fade = np.exp(-config.step * np.arange(config.n_poses) / config.disturbance_time)
         return fade[:, None] * b[None, :]

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cloe_ros.core.anticipation import Propagation, run
+from cloe_ros.core.anticipation import Propagation, run, stack_fields
 from cloe_ros.core.model import (
     BLOCKS,
     N_REFERENCES,
@@ -102,13 +102,14 @@ class Predictor:
         return self._discretise(np.asarray(theta, float), np.asarray(coupling, float),
                                 self.config.step)  # fmt: skip
 
-    def recent_offset(
+    def recent_offset_steps(
         self, theta: np.ndarray, coupling: np.ndarray, states: np.ndarray, refs: np.ndarray,
         dt: float,
-    ) -> np.ndarray:  # fmt: skip
-        """:func:`fit_reference_offset` with this model, for states sampled every ``dt`` s."""
+    ):  # fmt: skip
+        """:func:`fit_reference_offset` with this model, for states sampled every ``dt`` s; as
+        steps (:func:`~cloe_ros.core.anticipation.run`): the fit is a request."""
         ad, bd = self._discretise(np.asarray(theta, float), np.asarray(coupling, float), dt)
-        return fit_reference_offset(ad, bd, states, refs)
+        return (yield from fit_reference_offset_steps(ad, bd, states, refs))
 
     def static_gains(self, theta: np.ndarray, coupling: np.ndarray) -> np.ndarray:
         """Steady-state position (yaw) per unit reference, for each reference channel (4,)."""
@@ -197,19 +198,55 @@ def fit_reference_offset(
     4 x 4 least-squares problem; ``ridge`` (m^2, rad^2) keeps an offset the window does not
     determine at zero. Zeros if the window has fewer than two samples or is not finite.
     """
-    m = len(states) - 1
-    if m < 1 or not (np.isfinite(states).all() and np.isfinite(refs).all()):
+    return run(fit_reference_offset_steps(ad, bd, states, refs, ridge))
+
+
+def fit_reference_offset_steps(ad, bd, states, refs, ridge: float = 1e-3):
+    """:func:`fit_reference_offset` as steps (:func:`~cloe_ros.core.anticipation.run`): the fit
+    is a request (:class:`OffsetFit`)."""
+    if len(states) < 2 or not (np.isfinite(states).all() and np.isfinite(refs).all()):
         return np.zeros(N_REFERENCES)
-    lhs = ridge * np.eye(N_REFERENCES)
-    rhs = np.zeros(N_REFERENCES)
-    x = states[:-1].copy()  # every run at once: run i starts at sample i
-    g = np.zeros((m, N_STATES, N_REFERENCES))
+    return (yield OffsetFit(ad, bd, states, refs, ridge))
+
+
+@dataclass(frozen=True)
+class OffsetFit:
+    """A request for :func:`fit_reference_offsets` of one model and window."""
+
+    ad: np.ndarray
+    bd: np.ndarray
+    states: np.ndarray
+    refs: np.ndarray
+    ridge: float
+
+    def key(self) -> tuple:
+        return ('offset', self.states.shape, self.ridge)
+
+    @classmethod
+    def answer_all(cls, requests: list) -> list:
+        fields = stack_fields(requests, ('ad', 'bd', 'states', 'refs'))
+        return list(fit_reference_offsets(*fields, requests[0].ridge))
+
+
+def fit_reference_offsets(
+    ad: np.ndarray, bd: np.ndarray, states: np.ndarray, refs: np.ndarray, ridge: float
+) -> np.ndarray:
+    """:func:`fit_reference_offset` of V models and windows at once (V, 4), of finite windows
+    of two samples or more: ``ad`` (V, 12, 12), ``bd`` (V, 12, 4), ``states`` (V, M + 1, 12),
+    ``refs`` (V, M + 1, 4). The stacked products and solves take each model in a call of its
+    own (BLAS, LAPACK), so each gets bitwise its fit alone."""
+    v, m = states.shape[0], states.shape[1] - 1
+    lhs = np.broadcast_to(ridge * np.eye(N_REFERENCES), (v, N_REFERENCES, N_REFERENCES)).copy()
+    rhs = np.zeros((v, N_REFERENCES))
+    x = states[:, :-1].copy()  # every run at once: run i starts at sample i
+    g = np.zeros((v, m, N_STATES, N_REFERENCES))
+    ad_t, bd_t = np.swapaxes(ad, 1, 2), np.swapaxes(bd, 1, 2)
     for k in range(m):
         # step k takes runs 0..k from sample k to sample k + 1
-        x[: k + 1] = x[: k + 1] @ ad.T + refs[k] @ bd.T
-        g[: k + 1] = ad @ g[: k + 1] + bd
-        gk = g[: k + 1][:, FIT_STATES]  # (k + 1, 4, 4)
-        err = states[k + 1, FIT_STATES] - x[: k + 1, FIT_STATES]
-        lhs += np.einsum('iab,iac->bc', gk, gk)
-        rhs += np.einsum('iab,ia->b', gk, err)
-    return np.linalg.solve(lhs, rhs)
+        x[:, : k + 1] = x[:, : k + 1] @ ad_t + refs[:, k, None, :] @ bd_t
+        g[:, : k + 1] = ad[:, None] @ g[:, : k + 1] + bd[:, None]
+        gk = g[:, : k + 1][:, :, FIT_STATES]  # (V, k + 1, 4, 4)
+        err = states[:, k + 1][:, None, FIT_STATES] - x[:, : k + 1, FIT_STATES]
+        lhs += np.einsum('viab,viac->vbc', gk, gk)
+        rhs += np.einsum('viab,via->vb', gk, err)
+    return np.linalg.solve(lhs, rhs[..., None])[..., 0]

@@ -5,13 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cloe_ros.core.anticipation import AnticipationConfig
+from cloe_ros.core.anticipation import AnticipationConfig, run_together
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import generic_prior
 from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
 from cloe_ros.core.model import discretise
-from cloe_ros.core.prediction import PredictionConfig, fit_reference_offset
+from cloe_ros.core.prediction import (
+    PredictionConfig,
+    fit_reference_offset,
+    fit_reference_offset_steps,
+)
 from cloe_ros.core.samples import OdometrySample, PoseSample
 
 T0 = 1_700_000_000 * NS
@@ -42,6 +46,24 @@ def test_fit_without_data_or_with_nan_gives_no_offset():
     states = np.zeros((4, 12))
     states[2, 0] = np.nan
     assert not fit_reference_offset(ad, bd, states, np.zeros((4, 4))).any()
+
+
+def test_fits_answered_together_are_each_bitwise_the_fit_alone():
+    """Six models' fits in one batched call (run_together), each bitwise the fit it gets alone;
+    one window with a NaN is answered zeros without a request, beside them."""
+    rng = np.random.default_rng(4)
+    theta, coupling = generic_prior()
+    problems = []
+    for _ in range(6):
+        ad, bd = discretise(theta * rng.uniform(0.8, 1.2, theta.shape), coupling, 0.1)
+        problems.append((ad, bd, rng.normal(size=(6, 12)), rng.normal(size=(6, 4))))
+    broken = problems[0][2].copy()
+    broken[3, 1] = np.nan
+    problems.append((*problems[0][:2], broken, problems[0][3]))
+    together = run_together([fit_reference_offset_steps(*p) for p in problems])
+    for p, got in zip(problems, together):
+        np.testing.assert_array_equal(got, fit_reference_offset(*p))
+    assert not together[-1].any() and together[0].any()
 
 
 def _sinking_vehicle_predictions(

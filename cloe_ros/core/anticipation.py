@@ -152,52 +152,62 @@ class AnticipationConfig:
 
 
 class History:
-    """The recent past of one vehicle at the engine's rate, in a ring buffer.
+    """The recent past of one vehicle at the engine's rate: the last ``capacity`` steps.
 
     Per step: time (s), the measured state (12,), the estimate (12,) and the reference the
-    estimator used (4,).
+    estimator used (4,). The rows are kept in a linear buffer half as long again as the
+    capacity, in order, so the held steps are always one slice of it (read without a copy);
+    when the buffer's end is reached, the newest steps move to its front.
     """
+
+    COLUMNS = ('t', 'measured', 'estimate', 'reference', 'logged')
 
     def __init__(self, span: float, rate: float) -> None:
         self.capacity = max(8, math.ceil(span * rate) + 2)
-        self.t = np.zeros(self.capacity)
-        self.measured = np.zeros((self.capacity, 12))
-        self.estimate = np.zeros((self.capacity, 12))
-        self.reference = np.zeros((self.capacity, 4))
-        self.logged = np.zeros((self.capacity, 4))  # the reference as received
-        self._next = 0
+        size = self.capacity + max(8, self.capacity // 2)
+        self.t = np.zeros(size)
+        self.measured = np.zeros((size, 12))
+        self.estimate = np.zeros((size, 12))
+        self.reference = np.zeros((size, 4))
+        self.logged = np.zeros((size, 4))  # the reference as received
+        self._end = 0  # one past the newest row
         self.count = 0
-        self._ordered: dict[str, np.ndarray] = {}  # column -> samples oldest first, until append
 
     def clear(self) -> None:
-        self._next = 0
+        self._end = 0
         self.count = 0
-        self._ordered.clear()
 
     def append(self, t: float, measured, estimate, reference, logged) -> None:
-        k = self._next
+        k = self._end
+        if k == len(self.t):  # the buffer is full: the newest capacity - 1 rows go to the front
+            keep = self.capacity - 1
+            for name in self.COLUMNS:
+                column = getattr(self, name)
+                column[:keep] = column[k - keep : k]
+            k = keep
         self.t[k] = t
         self.measured[k] = measured
         self.estimate[k] = estimate
         self.reference[k] = reference
         self.logged[k] = logged
-        self._next = (k + 1) % self.capacity
+        self._end = k + 1
         self.count += 1
-        self._ordered.clear()
+
+    @property
+    def held(self) -> slice:
+        """The rows of the held steps, oldest first."""
+        return slice(self._end - min(self.count, self.capacity), self._end)
 
     def ordered(self, column: str) -> np.ndarray:
-        """``column`` (a field name) of the held samples, oldest first (kept until the next
-        append: the scores of one step read it many times)."""
-        out = self._ordered.get(column)
-        if out is None:
-            out = self._ordered[column] = getattr(self, column)[self.last()]
-        return out
+        """``column`` (a field name) of the held steps, oldest first: a view, valid until the
+        next append."""
+        return getattr(self, column)[self.held]
 
-    def last(self, span: float | None = None) -> slice | np.ndarray:
-        """Indices of the samples of the last ``span`` s (all held if None), oldest first."""
-        n = min(self.count, self.capacity)
-        idx = (self._next - n + np.arange(n)) % self.capacity
-        if span is not None and n:
+    def last(self, span: float | None = None) -> np.ndarray:
+        """Rows of the steps of the last ``span`` s (all held if None), oldest first."""
+        held = self.held
+        idx = np.arange(held.start, held.stop)
+        if span is not None and len(idx):
             idx = idx[self.t[idx] >= self.t[idx[-1]] - span - 1e-9]
         return idx
 

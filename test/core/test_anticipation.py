@@ -58,7 +58,7 @@ def test_one_solve_gives_each_column_its_own_fit_and_the_joint_fit():
 def test_the_history_interpolates_every_channel_as_np_interp():
     rng = np.random.default_rng(4)
     history = History(2.0, 100.0)
-    for k in range(150):  # more than it holds: the ring wraps
+    for k in range(350):  # more than its buffer holds: the newest rows move to its front
         t = 0.01 * k + 0.002 * rng.random()
         history.append(t, rng.standard_normal(12), rng.standard_normal(12), rng.standard_normal(4),
                        rng.standard_normal(4))  # fmt: skip
@@ -72,6 +72,27 @@ def test_the_history_interpolates_every_channel_as_np_interp():
     outside = np.array([t[0] - 1e-6, t[-1] + 1e-6, np.nan])
     assert np.isnan(history.at(outside, 'measured', [0, 4])).all()
     assert np.isnan(history.at(outside[:1], 'measured', list(range(12)))).all()
+
+
+def test_the_history_holds_the_latest_steps_in_order_across_its_buffers_moves():
+    """Appended well past its buffer's length (the newest rows move to its front several times),
+    and cleared on the way, the history holds exactly the last ``capacity`` steps, oldest first,
+    and its views are those steps' values."""
+    rng = np.random.default_rng(5)
+    history = History(0.5, 100.0)
+    steps = []
+    for k in range(5 * len(history.t)):
+        if k == 2 * len(history.t) + 3:
+            history.clear()
+            steps.clear()
+        step = (0.01 * k, *rng.standard_normal((2, 12)), *rng.standard_normal((2, 4)))
+        history.append(*step)
+        steps.append(step)
+        held = steps[-history.capacity :]
+        for c, name in enumerate(History.COLUMNS):
+            np.testing.assert_array_equal(history.ordered(name), np.array([s[c] for s in held]))
+        recent = history.last(0.1)
+        np.testing.assert_array_equal(history.t[recent], [s[0] for s in held[-11:]])
 
 
 def test_a_line_is_extrapolated_by_the_linear_fit():

@@ -834,12 +834,13 @@ class VirtualReference:
         self.gain = np.ones(4)
         self.delay = np.full(4, 0.5)
 
-    def update(self, a: np.ndarray, b: np.ndarray, blocks) -> None:
-        """From the model's matrices ``A`` (12, 12), ``B`` (12, 4) and its blocks."""
-        key = a.tobytes() + b.tobytes()
+    def update(self, theta: np.ndarray, coupling: np.ndarray, blocks) -> None:
+        """From the model ``(theta, coupling)`` and its blocks (nothing to do if unchanged)."""
+        key = theta.tobytes() + coupling.tobytes()
         if key == self._key:
             return
         self._key = key
+        a, b = system_matrices(theta, coupling)
         for block in blocks:
             idx = list(block.states)
             try:
@@ -1029,7 +1030,7 @@ class Anticipator:
             del self._radii[t0], self._scales[t0]
         logged = lambda times: hist.at(times, 'logged', POSITION_CHANNELS)  # noqa: E731
         self.intent_scores.score(since, t, logged, detail=False)
-        self.virtual.update(*system_matrices(theta, coupling), BLOCKS)
+        self.virtual.update(np.asarray(theta, float), np.asarray(coupling, float), BLOCKS)
         yield from self._update_trust_steps(t, theta, coupling)
 
     def _judging_model(self, t: float, theta: np.ndarray, coupling: np.ndarray) -> tuple:

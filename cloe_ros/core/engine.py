@@ -1102,7 +1102,7 @@ class VehicleEngine:
         """:meth:`_predict` as steps: a generator of the requests of its costliest solves
         (:func:`~cloe_ros.core.anticipation.run_together` batches those of many vehicles)."""
         theta, coupling = e.model
-        unstable = unstable_blocks(theta, coupling)
+        unstable = self._predictor.unstable_blocks(theta, coupling)
         if unstable:
             e.prediction_status = PREDICTION_WITHHELD
             e.prediction_note = (

@@ -75,6 +75,7 @@ class Predictor:
     def __init__(self, config: PredictionConfig) -> None:
         self.config = config
         self._key: bytes | None = None
+        self._unstable: list[str] = []
         self._stable = False
         # (ad, bd) of the current model per step: the predictions' step, and the recent-offset
         # fit's, which is the same one whenever the rate is a multiple of 1 / step
@@ -86,14 +87,25 @@ class Predictor:
         self, theta: np.ndarray, coupling: np.ndarray, dt: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """The model's exact discretisation over ``dt`` (cached for the current model)."""
-        key = np.concatenate([theta, coupling]).tobytes()
-        if key != self._key:
-            self._key = key
-            self._stable = not unstable_blocks(theta, coupling)
-            self._discrete.clear()
+        self._use_model(theta, coupling)
         if dt not in self._discrete:
             self._discrete[dt] = discretise(theta, coupling, dt)
         return self._discrete[dt]
+
+    def _use_model(self, theta: np.ndarray, coupling: np.ndarray) -> None:
+        """Make ``(theta, coupling)`` the cached model (nothing to do if it is already)."""
+        key = theta.tobytes() + coupling.tobytes()
+        if key != self._key:
+            self._key = key
+            self._unstable = unstable_blocks(theta, coupling)
+            self._stable = not self._unstable
+            self._discrete.clear()
+
+    def unstable_blocks(self, theta: np.ndarray, coupling: np.ndarray) -> list[str]:
+        """:func:`~cloe_ros.core.model.unstable_blocks` of the model (cached for the current
+        model: it changes far less often than a prediction is made)."""
+        self._use_model(np.asarray(theta, float), np.asarray(coupling, float))
+        return list(self._unstable)
 
     def discretisation(
         self, theta: np.ndarray, coupling: np.ndarray

@@ -233,7 +233,7 @@ def test_the_virtual_reference_makes_a_constant_velocity_motion_unforced():
     coupling = np.array([9.81, -9.81])
     a, b = system_matrices(theta, coupling)
     virtual = VirtualReference()
-    virtual.update(a, b, BLOCKS)
+    virtual.update(theta, coupling, BLOCKS)
     # z block (2nd order): z'' = -30 z - 8 z' + 30 r: gain 1, delay 8/30 s
     assert virtual.gain[3] == pytest.approx(1.0)
     assert virtual.delay[3] == pytest.approx(8.0 / 30.0)

@@ -531,6 +531,18 @@ def _occurrence(values: np.ndarray) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class Scores:
+    """Poses scored by :meth:`Ensemble.score`, by prediction (in slot order), then horizon: the
+    slot of their prediction (n,), its issue time (n,), their horizon (n,) and each candidate's
+    squared error (n, M)."""
+
+    slots: np.ndarray
+    issued: np.ndarray
+    horizons: np.ndarray
+    squared: np.ndarray
+
+
 class Ensemble:
     """Per-horizon weights of M candidate predictors from their scored past predictions.
 
@@ -572,19 +584,23 @@ class Ensemble:
         self.scored[:] = False
         self._pending_t[:] = np.nan
 
-    def add(self, t: float, paths: np.ndarray) -> None:
-        """Remember the candidates' predictions ``paths`` (M, K, D) issued at ``t``."""
-        self._pending_t[self._next] = t
-        self._pending[self._next] = paths
-        self._next = (self._next + 1) % len(self._pending_t)
+    def add(self, t: float, paths: np.ndarray) -> int:
+        """Remember the candidates' predictions ``paths`` (M, K, D) issued at ``t``; returns the
+        slot it is kept in (until it is scored, or ``max_pending`` more are added)."""
+        slot = self._next
+        self._pending_t[slot] = t
+        self._pending[slot] = paths
+        self._next = (slot + 1) % len(self._pending_t)
+        return slot
 
-    def score(
-        self, since: float, now: float, truth, detail: bool = True
-    ) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    def score(self, since: float, now: float, truth, detail: bool = True) -> Scores | None:
         """Score the poses whose times fall in ``(since, now]``; ``truth(times (...,))`` gives
-        their true values (..., D), NaN where unknown. Returns, per scored prediction,
-        ``(issue time, horizon indices, squared errors (M, k))`` (nothing unless ``detail``)."""
-        out = []
+        their true values (..., D), NaN where unknown. Returns the scored poses (nothing unless
+        ``detail``)."""
+        out = None
+        if detail:
+            out = Scores(np.zeros(0, np.intp), np.zeros(0), np.zeros(0, np.intp),
+                         np.zeros((0, len(self.names))))  # fmt: skip
         live = np.flatnonzero(np.isfinite(self._pending_t))
         issued = self._pending_t[live]
         times = issued[:, None] + self.offsets[None, :]  # (P, K)
@@ -613,10 +629,7 @@ class Ensemble:
         if not detail:
             return out
         squared = np.einsum('pmd,pmd->pm', err, err)
-        starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
-        for a, b in zip(starts, [*starts[1:], len(rows)]):
-            out.append((issued[rows[a]], ks[a:b], squared[a:b].T))
-        return out
+        return Scores(live[rows], issued[rows], ks, squared)
 
     def _accumulate(self, ks: np.ndarray, cross: np.ndarray) -> None:
         """Weigh one prediction's scores in: each horizon's cross-products are an exponentially
@@ -962,10 +975,10 @@ class Anticipator:
                                       pending)  # fmt: skip
         self.intent = Intent(config.intent_window, self.starts)
         self.radius = CoverageRadius(self.poses, config.coverage)
-        self._scales: dict[float, np.ndarray] = {}
+        self._scales = np.full((pending, n_poses), np.nan)  # per guard slot (see update)
         self.trust = ReferenceTrust(self.config)
         self.virtual = VirtualReference()
-        self._radii: dict[float, np.ndarray] = {}  # radius published with each pending issue
+        self._radii = np.full((pending, n_poses), np.nan)  # radius published, per guard slot
         self._scored_to: float | None = None
         self._snapshots: deque = deque()  # (t, theta, coupling) of the model in use, every 1 s
         self._frozen: list[tuple | None] = [None] * 4  # per channel: (since, theta, coupling)
@@ -979,8 +992,8 @@ class Anticipator:
         self.intent_scores.clear()
         self.radius.clear()
         self.trust.clear()
-        self._radii.clear()
-        self._scales.clear()
+        self._radii[:] = np.nan
+        self._scales[:] = np.nan
         self._scored_to = None
         self._snapshots.clear()
         self._frozen = [None] * 4
@@ -1016,18 +1029,17 @@ class Anticipator:
         self._scored_to = t
         hist = self.history
         truth = lambda times: hist.at(times, 'measured', POSITION)  # noqa: E731
-        scored = [(ks, np.sqrt(sq[-1]), self._radii[key][ks], self._scales[key][ks])
-                  for t0, ks, sq in self.guard.score(since, t, truth)
-                  if (key := round(t0, 6)) in self._radii]  # fmt: skip
-        horizons = np.concatenate([ks for ks, *_ in scored]) if scored else np.zeros(0, int)
-        if len(scored) > 1 and len(np.unique(horizons)) == len(horizons):
+        scored = self.guard.score(since, t, truth)
+        slots, ks = scored.slots, scored.horizons
+        errors = np.sqrt(scored.squared[:, -1])  # the published prediction's
+        radii, scales = self._radii[slots, ks], self._scales[slots, ks]
+        if len(ks) and len(np.unique(ks)) == len(ks):
             # each horizon scored once (as between two predictions): one update, the same
-            self.radius.update(horizons, *(np.concatenate(c) for c in list(zip(*scored))[1:]))
-        else:
-            for ks, errors, radii, scales in scored:
-                self.radius.update(ks, errors, radii, scales)
-        for t0 in [k for k in self._radii if k + self.poses[-1] < t - 1e-6]:
-            del self._radii[t0], self._scales[t0]
+            self.radius.update(ks, errors, radii, scales)
+        elif len(ks):  # prediction by prediction
+            starts = np.flatnonzero(np.r_[True, slots[1:] != slots[:-1]])
+            for a, b in zip(starts, [*starts[1:], len(slots)]):
+                self.radius.update(ks[a:b], errors[a:b], radii[a:b], scales[a:b])
         logged = lambda times: hist.at(times, 'logged', POSITION_CHANNELS)  # noqa: E731
         self.intent_scores.score(since, t, logged, detail=False)
         self.virtual.update(np.asarray(theta, float), np.asarray(coupling, float), BLOCKS)
@@ -1156,9 +1168,9 @@ class Anticipator:
         if not self.trust.grounded:
             # a vehicle at rest is predicted by every candidate alike: the guard and the radius
             # learn from flight only
-            self.guard.add(t, paths)
-            self._radii[round(t, 6)] = radius
-            self._scales[round(t, 6)] = scales
+            slot = self.guard.add(t, paths)
+            self._radii[slot] = radius
+            self._scales[slot] = scales
         return Anticipation(published, radius, w, trust)
 
     def _weights_steps(self, allowed: np.ndarray):

@@ -182,13 +182,13 @@ def test_scores_of_one_horizon_due_together_are_weighed_in_in_order():
     for i, path in enumerate(paths):
         for ens in (step, once):
             ens.add(0.2 * i, path)
-        by_step += step.score(0.2 * i - 0.2, 0.2 * i, truth)
-    at_once = once.score(-0.2, 0.2 * (len(paths) - 1), truth)
+        by_step.append(step.score(0.2 * i - 0.2, 0.2 * i, truth))
+    at_once = [once.score(-0.2, 0.2 * (len(paths) - 1), truth)]
     np.testing.assert_allclose(once.cross, step.cross, rtol=1e-14, atol=0)
     assert once.scored.tolist() == step.scored.tolist() == [True] * 3
     # the same (prediction, horizon) scores, whichever call gave them
-    flat = lambda out: sorted((round(t0, 9), int(k), tuple(sq[:, j])) for t0, ks, sq in out  # noqa: E731
-                              for j, k in enumerate(ks))  # fmt: skip
+    flat = lambda out: sorted((round(t0, 9), int(k), tuple(sq)) for s in out  # noqa: E731
+                              for t0, k, sq in zip(s.issued, s.horizons, s.squared))  # fmt: skip
     assert len(flat(at_once)) == len(flat(by_step)) == sum(int(np.sum(0.2 * i + offsets <= 2.2
                                                                       + 1e-9)) for i in range(12))
     np.testing.assert_allclose([s[2] for s in flat(at_once)], [s[2] for s in flat(by_step)],

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -764,10 +764,10 @@ class TrustStatus:
 
     tracked: np.ndarray
     reasons: tuple[str, ...]
+    all_tracked: bool = field(init=False)  # (read at every step: worked out once)
 
-    @property
-    def all_tracked(self) -> bool:
-        return bool(self.tracked.all())
+    def __post_init__(self) -> None:
+        self.all_tracked = bool(self.tracked.all())
 
 
 class ReferenceTrust:

@@ -986,7 +986,8 @@ class VehicleEngine:
             self._t_ns = step.t_ns
             self._last_r = step.used
             self._track_offsets(step.zeta, step.used)
-            if not (np.isfinite(est.zeta_hat[i]).all() and np.isfinite(est.theta_hat[i]).all()):
+            values = (*est.zeta_hat[i].tolist(), *est.theta_hat[i].tolist())
+            if not all(map(math.isfinite, values)):
                 raise FloatingPointError('non-finite estimate')
             out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used, variance, defer))
         except NUMERICAL_FAILURES:
@@ -1041,7 +1042,7 @@ class VehicleEngine:
         e.error_variance = variance.copy()
         self.stats.steps += 1
         self.stats.last_stamp_ns = t_ns
-        self.stats.last_error_norm = float(np.linalg.norm(e.error))
+        self.stats.last_error_norm = math.hypot(*e.error.tolist())
         if self._trust is not None and not self._trust.all_tracked:
             self.stats.untracked_steps += 1
         if self._window:

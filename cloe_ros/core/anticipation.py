@@ -415,9 +415,8 @@ class HarmonicFits:
     @classmethod
     def answer_all(cls, requests: list) -> list:
         first = requests[0]
-        separate, joint = harmonic_fits_batch(
-            np.array([r.t for r in requests]), np.array([r.y for r in requests]), first.ahead,
-            first.omegas, first.joint)  # fmt: skip
+        separate, joint = harmonic_fits_batch(*stack_fields(requests, ('t', 'y')), first.ahead,
+                                              first.omegas, first.joint)  # fmt: skip
         return list(zip(separate, joint))
 
 
@@ -1081,8 +1080,8 @@ class Anticipator:
         n = max(1, round(horizon / self.step))
         t_then = t - n * self.step
         hist = self.history
-        idx = hist.last()
-        if not len(idx) or hist.t[idx[0]] > t_then + 1e-9:
+        held_t = hist.ordered('t')
+        if not len(held_t) or held_t[0] > t_then + 1e-9:
             return
         times = t_then + self.step * np.arange(n)
         refs = hist.at(times, 'logged', [0, 1, 2, 3])

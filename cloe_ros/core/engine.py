@@ -442,7 +442,7 @@ class VehicleEngine:
             fields = zip(('position', 'orientation', 'linear', 'angular'), (p, q, v, w))
             bad = ', '.join(n for n, a in fields if not all(map(math.isfinite, a)))
             return 'non-finite odometry', f'in {bad}'
-        norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+        norm = math.sqrt(float(sample.orientation @ sample.orientation))  # (as a reference's)
         if abs(norm - 1.0) > self.config.quaternion_tolerance:
             return 'invalid quaternion', f'norm {norm:.6g}'
         for name, values, bound, unit in (

@@ -80,8 +80,7 @@ class Predictor:
         # (ad, bd) of the current model per step: the predictions' step, and the recent-offset
         # fit's, which is the same one whenever the rate is a multiple of 1 / step
         self._discrete: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-        self._gains_key: bytes | None = None
-        self._gains = np.ones(N_REFERENCES)
+        self._gains: np.ndarray | None = None  # static gains of the current model, once asked
 
     def _discretise(
         self, theta: np.ndarray, coupling: np.ndarray, dt: float
@@ -100,6 +99,7 @@ class Predictor:
             self._unstable = unstable_blocks(theta, coupling)
             self._stable = not self._unstable
             self._discrete.clear()
+            self._gains = None
 
     def unstable_blocks(self, theta: np.ndarray, coupling: np.ndarray) -> list[str]:
         """:func:`~cloe_ros.core.model.unstable_blocks` of the model (cached for the current
@@ -125,9 +125,10 @@ class Predictor:
 
     def static_gains(self, theta: np.ndarray, coupling: np.ndarray) -> np.ndarray:
         """Steady-state position (yaw) per unit reference, for each reference channel (4,)."""
-        key = np.concatenate([theta, coupling]).tobytes()
-        if key != self._gains_key:
-            a, b = system_matrices(np.asarray(theta, float), np.asarray(coupling, float))
+        theta, coupling = np.asarray(theta, float), np.asarray(coupling, float)
+        self._use_model(theta, coupling)
+        if self._gains is None:
+            a, b = system_matrices(theta, coupling)
             gains = np.ones(N_REFERENCES)
             for block in BLOCKS:
                 idx = np.array(block.states)
@@ -136,7 +137,7 @@ class Predictor:
                     gains[block.reference] = x_ss[0]
                 except np.linalg.LinAlgError:
                     gains[block.reference] = np.nan
-            self._gains_key, self._gains = key, gains
+            self._gains = gains
         return self._gains
 
     def predict(self, *args, **kwargs) -> np.ndarray | None:
@@ -213,7 +214,9 @@ def fit_reference_offset(
     return run(fit_reference_offset_steps(ad, bd, states, refs, ridge))
 
 
-def fit_reference_offset_steps(ad, bd, states, refs, ridge: float = 1e-3):
+def fit_reference_offset_steps(
+    ad: np.ndarray, bd: np.ndarray, states: np.ndarray, refs: np.ndarray, ridge: float = 1e-3
+):
     """:func:`fit_reference_offset` as steps (:func:`~cloe_ros.core.anticipation.run`): the fit
     is a request (:class:`OffsetFit`)."""
     if len(states) < 2 or not (np.isfinite(states).all() and np.isfinite(refs).all()):

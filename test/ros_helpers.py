@@ -34,6 +34,7 @@ __all__ = [
     'release_test_domains',
     'reserve_domain_id',
     'ros_env',
+    'shared_memory_segments',
     'spin_until',
     'start_node',
 ]
@@ -78,6 +79,55 @@ def executable(name: str) -> str:
     return found
 
 
+#: A Fast DDS profile with UDP on the loopback interface as the only transport (no shared
+#: memory); see :func:`start_node`'s ``udp_only``.
+UDP_LOOPBACK_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <transport_descriptors>
+    <transport_descriptor>
+      <transport_id>udp_loopback</transport_id>
+      <type>UDPv4</type>
+      <interfaceWhiteList><address>127.0.0.1</address></interfaceWhiteList>
+    </transport_descriptor>
+  </transport_descriptors>
+  <participant profile_name="udp_loopback" is_default_profile="true">
+    <rtps>
+      <userTransports><transport_id>udp_loopback</transport_id></userTransports>
+      <useBuiltinTransports>false</useBuiltinTransports>
+    </rtps>
+  </participant>
+</profiles>
+"""
+
+
+def udp_only_env(env: dict[str, str], workdir: Path) -> dict[str, str]:
+    """``env`` changed so that the node's DDS participant speaks UDP on 127.0.0.1 only, without
+    Fast DDS's shared-memory transport.
+
+    A test that stops a node (SIGSTOP) needs this. Fast DDS's shared-memory transport checks that
+    a port's reader answers within a second when a process opens that port, and removes the port
+    and creates it anew when it does not; a stopped reader cannot answer, and a reader finds its
+    own port marked broken when it runs again. From then on it reads nothing on that port, and a
+    later process on the same domain reuses the port's number. Over UDP a stopped reader only
+    fills its socket buffer, which reliable delivery repairs. rmw_fastrtps keeps shared memory
+    under ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` whatever the profile says, so the range is
+    SUBNET, with the UDP transport restricted to the loopback interface and
+    127.0.0.1 as a static peer: nothing leaves the machine."""
+    profile = workdir / 'udp_loopback.xml'
+    profile.write_text(UDP_LOOPBACK_PROFILE)
+    return {
+        **env,
+        'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET',
+        'ROS_STATIC_PEERS': '127.0.0.1',
+        'FASTRTPS_DEFAULT_PROFILES_FILE': str(profile),
+    }
+
+
+def shared_memory_segments(pid: int) -> set[str]:
+    """The Fast DDS shared-memory segments (``/dev/shm/fastrtps_*``) process ``pid`` maps."""
+    with open(f'/proc/{pid}/maps') as maps:
+        return {line.split()[-1] for line in maps if '/dev/shm/fastrtps_' in line}
+
 def start_node(
     name: str,
     params: dict[str, object],
@@ -85,16 +135,19 @@ def start_node(
     workdir: Path,
     extra_args: list[str] | None = None,
     node_name: str | None = None,
+    udp_only: bool = False,
 ) -> NodeProcess:
     """The installed console script ``name`` with ``params`` on ``domain_id``, run in ``workdir``
     (rcl logs in ``workdir/ros_log``); its standard output and standard error go to files of
-    their own there (``log_path``, ``stderr_path``)."""
+    their own there (``log_path``, ``stderr_path``). ``udp_only``: DDS over UDP on the loopback
+    interface without shared memory (:func:`udp_only_env`), for a node the test stops."""
     workdir.mkdir(parents=True, exist_ok=True)
     log_path = workdir / f'{node_name or name}.{os.getpid()}.{time.monotonic_ns()}.out'
+    env = ros_env(domain_id, workdir / 'ros_log')
     return NodeProcess(
         name,
         params,
-        ros_env(domain_id, workdir / 'ros_log'),
+        udp_only_env(env, workdir) if udp_only else env,
         log_path,
         node_name,
         extra_args=extra_args or (),

@@ -17,7 +17,13 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from ros_helpers import private_domain, reserve_domain_id, spin_until, start_node
+from ros_helpers import (
+    private_domain,
+    reserve_domain_id,
+    shared_memory_segments,
+    spin_until,
+    start_node,
+)
 
 from cloe_ros.io.messages import decode_diagnostics
 from cloe_ros.ros.fleet import check_shard, shard_of
@@ -66,13 +72,15 @@ def test_messages_lost_in_dds_are_counted_per_topic(ros, tmp_path: Path) -> None
         Odometry, '/odom', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     )
     diagnostics = Diagnostics(ros)
-    node = start_node('cloe_inference', {'diagnostics_period': 0.2}, ros.domain, tmp_path)
+    node = start_node('cloe_inference', {'diagnostics_period': 0.2}, ros.domain, tmp_path,
+                      udp_only=True)  # fmt: skip
     name = 'cloe_inference: /'
     try:
         assert spin_until(ros.executor, lambda: pub.get_subscription_count() >= 1, 60), (
             node.output()
         )
         assert spin_until(ros.executor, lambda: diagnostics.values(name), 60), node.output()
+        assert not shared_memory_segments(node.proc.pid)  # (udp_only: what stops is not in them)
         os.kill(node.proc.pid, signal.SIGSTOP)
         try:
             for k in range(n):
@@ -112,7 +120,7 @@ def test_what_the_subscription_history_overwrites_is_counted_by_the_stamps(ros, 
     )
     diagnostics = Diagnostics(ros)
     node = start_node('cloe_inference', {'diagnostics_period': 0.2, 'qos_depth': 100},
-                      ros.domain, tmp_path)  # fmt: skip
+                      ros.domain, tmp_path, udp_only=True)  # fmt: skip
     name = 'cloe_inference: /'
 
     def counts() -> tuple[int, int, int]:

@@ -134,9 +134,9 @@ def logs(rec: NodeProcess) -> str:
     return rec.output()
 
 
-def start_recorder(ros, tmp_path: Path, **params) -> NodeProcess:
+def start_recorder(ros, tmp_path: Path, udp_only: bool = False, **params) -> NodeProcess:
     params.setdefault('output', str(tmp_path / 'bag'))
-    rec = start_node('bag_recorder', params, ros.domain, tmp_path)
+    rec = start_node('bag_recorder', params, ros.domain, tmp_path, udp_only=udp_only)
     if not rec.wait_for('recording to', timeout=TIMEOUT):
         rec.stop(signal.SIGKILL)
         pytest.fail(f'recorder did not start:\n{logs(rec)}')
@@ -401,7 +401,7 @@ def test_messages_lost_in_dds_are_counted(ros, tmp_path: Path) -> None:
     odom_pub = ros.node.create_publisher(
         Odometry, '/odom', QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
     )
-    rec = start_recorder(ros, tmp_path, topics=['/odom'])
+    rec = start_recorder(ros, tmp_path, udp_only=True, topics=['/odom'])  # it is stopped
     try:
         wait_matched(ros, odom_pub)
         n, stop_at, cont_at = 3000, 500, 2500

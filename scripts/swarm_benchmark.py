@@ -157,8 +157,8 @@ def listen(n: int, watch: str) -> None:
     rclpy.shutdown()
 
 
-def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None = None
-        ) -> dict[str, float]:  # fmt: skip
+def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None = None,
+        qos_depth: int | None = None) -> dict[str, float]:  # fmt: skip
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     env.setdefault('ROS_DOMAIN_ID', '91')
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -176,7 +176,8 @@ def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None =
         procs['rx'] = subprocess.Popen(
             [sys.executable, '-m', 'cloe_ros.ros.inference_node', '--ros-args', '-p',
              f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p', 'reference_timeout:=5.0',
-             *(['-p', f'batch_period:={batch}'] if batch is not None else [])],
+             *(['-p', f'batch_period:={batch}'] if batch is not None else []),
+             *(['-p', f'qos_depth:={qos_depth}'] if qos_depth is not None else [])],
             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     time.sleep(3.0)  # (discovery)
     cpu0 = cpu_seconds(procs['rx'].pid)
@@ -253,6 +254,9 @@ def main() -> int:
     parser.add_argument('--repeat', type=int, default=3)
     parser.add_argument('--batch-period', type=float, default=None,
                         help="the node's batch_period, s (default: the node's default)")
+    parser.add_argument('--qos-depth', type=int, default=None,
+                        help="the node's qos_depth, the history of its subscriptions (default: "
+                             "the node's default)")  # fmt: skip
     args = parser.parse_args()
     if args.offline:
         offline(args.offline, args.repeat)
@@ -265,7 +269,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.vehicles:
             f = run(n, args.duration, 'floor', Path(tmp))
-            c = run(n, args.duration, 'node', Path(tmp), args.batch_period)
+            c = run(n, args.duration, 'node', Path(tmp), args.batch_period, args.qos_depth)
             odom = round(args.duration * 100) * n
             floor_us = 1e6 * f['cpu_s'] / max(f['received'], 1)
             node_us = 1e6 * c['cpu_s'] / c['sent']

@@ -104,15 +104,15 @@ def udp_only_env(env: dict[str, str], workdir: Path) -> dict[str, str]:
     """``env`` changed so that the node's DDS participant speaks UDP on 127.0.0.1 only, without
     Fast DDS's shared-memory transport.
 
-    A test that stops a node (SIGSTOP) needs this. Fast DDS's shared-memory transport checks that
-    a port's reader answers within a second when a process opens that port, and removes the port
-    and creates it anew when it does not; a stopped reader cannot answer, and a reader finds its
-    own port marked broken when it runs again. From then on it reads nothing on that port, and a
-    later process on the same domain reuses the port's number. Over UDP a stopped reader only
-    fills its socket buffer, which reliable delivery repairs. rmw_fastrtps keeps shared memory
-    under ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` whatever the profile says, so the range is
-    SUBNET, with the UDP transport restricted to the loopback interface and
-    127.0.0.1 as a static peer: nothing leaves the machine."""
+    A test that stops a node (SIGSTOP) needs this. When a process opens a shared-memory port,
+    Fast DDS checks that the port's reader answers within a second, and removes the port and
+    creates it anew if it does not. A stopped reader cannot answer; when it runs again it can find
+    its own port marked broken and read nothing more on it, and a later process on the same
+    domain reuses the port's number. Over UDP a stopped reader only fills its socket buffer, which
+    reliable delivery repairs. rmw_fastrtps keeps shared memory under
+    ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` whatever the profile says, so the range is SUBNET,
+    with the UDP transport restricted to the loopback interface and 127.0.0.1 as a static peer:
+    nothing leaves the machine."""
     profile = workdir / 'udp_loopback.xml'
     profile.write_text(UDP_LOOPBACK_PROFILE)
     return {
@@ -127,6 +127,7 @@ def shared_memory_segments(pid: int) -> set[str]:
     """The Fast DDS shared-memory segments (``/dev/shm/fastrtps_*``) process ``pid`` maps."""
     with open(f'/proc/{pid}/maps') as maps:
         return {line.split()[-1] for line in maps if '/dev/shm/fastrtps_' in line}
+
 
 def start_node(
     name: str,

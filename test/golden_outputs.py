@@ -1,7 +1,22 @@
-"""What the golden test compares (scripts/golden.py writes it): a bag's published numbers."""
+"""What the golden test compares (scripts/golden.py writes it): a bag's published numbers,
+computed with the same numeric kernels on every x86-64 machine.
+
+numpy and OpenBLAS pick their kernels by the CPU they run on, and the kernels differ in the last
+bit. The identifier carries that up to 3e-8 in ``cloe/parameters`` (5 of the 17 corpus flights,
+between OpenBLAS's Haswell and SkylakeX kernels on one machine), more than the test's 1e-9. So the
+numbers are computed in a process whose kernels are pinned (:data:`PINNED_KERNELS`), which every
+x86-64 CPU that runs numpy 2.4 can run: OpenBLAS's Nehalem kernels, numpy's baseline (x86-64-v2)
+loops, and glibc's libm without its AVX2 and FMA variants (these move the numbers by at most
+4e-13). Run as ``python -m test.golden_outputs BAG OUT.npz``, it writes :func:`golden_outputs` of
+``BAG`` after checking that the pin holds.
+"""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +35,14 @@ GOLDEN = REPO / 'test' / 'golden'
 EVERY = 50  # estimates
 EVERY_PREDICTION = 5
 HORIZON_POSES = np.array([5, 10, 20, 50, 100])  # 0.5, 1, 2, 5, 10 s at the default 0.1 s
+
+
+PINNED_KERNELS = {
+    'OPENBLAS_CORETYPE': 'Nehalem',
+    'NPY_ENABLE_CPU_FEATURES': 'X86_V2',  # numpy's baseline; no dispatched loop above it
+    'GLIBC_TUNABLES': 'glibc.cpu.hwcaps=-AVX2,-FMA,-AVX512F',
+    'OPENBLAS_NUM_THREADS': '1',
+}
 
 
 def bags() -> list[Path]:
@@ -48,6 +71,38 @@ def golden_outputs(bag: Path) -> dict[str, np.ndarray]:
             estimates.extend(fleet.advance().get(vehicle, []))
         estimates.extend(engine.finish())
     return summarise(estimates)
+
+
+def pinned_golden_outputs(bag: Path) -> dict[str, np.ndarray]:
+    """:func:`golden_outputs` of ``bag``, computed in a child process with :data:`PINNED_KERNELS`
+    and the ``cloe_ros`` this process imports."""
+    import cloe_ros
+
+    paths = [str(REPO), str(Path(cloe_ros.__file__).resolve().parents[1])]
+    old = os.environ.get('PYTHONPATH')
+    env = {**os.environ, **PINNED_KERNELS,
+           'PYTHONPATH': os.pathsep.join(paths + ([old] if old else []))}
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / 'outputs.npz'
+        subprocess.run([sys.executable, '-m', 'test.golden_outputs', str(bag), str(out)],
+                       env=env, cwd=REPO, check=True)
+        with np.load(out) as saved:
+            return dict(saved)
+
+
+def check_pinned_kernels() -> None:
+    """Raise unless this process runs the pinned kernels: OpenBLAS's Nehalem kernels in every
+    OpenBLAS loaded, and no numpy loop dispatched above its baseline."""
+    import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS)
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    from threadpoolctl import threadpool_info
+
+    dispatched = [name for name in __cpu_dispatch__ if __cpu_features__.get(name)]
+    cores = {info['filepath']: info.get('architecture') for info in threadpool_info()
+             if info['internal_api'] == 'openblas'}
+    if dispatched or not cores or set(cores.values()) != {PINNED_KERNELS['OPENBLAS_CORETYPE']}:
+        raise RuntimeError(f'the kernels are not pinned: numpy dispatches {dispatched}, '
+                           f'OpenBLAS runs {cores}')
 
 
 def summarise(estimates) -> dict[str, np.ndarray]:
@@ -104,3 +159,9 @@ def compare(golden: dict[str, np.ndarray], got: dict[str, np.ndarray]) -> dict[s
             scale = max(1.0, float(np.nanmax(np.abs(want))))
             out[key] = float(np.nanmax(np.abs(have - want), initial=0.0)) / scale
     return out
+
+
+if __name__ == '__main__':
+    check_pinned_kernels()
+    bag, out = map(Path, sys.argv[1:3])
+    np.savez(out, **golden_outputs(bag))

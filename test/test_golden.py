@@ -5,18 +5,27 @@ positions and radii at 0.5 to 10 s of every 5th prediction, the counts, and sums
 run. A change meant to move the numbers rewrites them (``python scripts/golden.py write``) and
 says so in its commit.
 
-The numbers are bit for bit on one machine, not across machines: numpy's kernels differ between
-CPUs in the last bit, and the identifier carries that up to 3e-8 in ``cloe/parameters`` (measured
-on 5 of the 17 corpus flights, between the machine that first wrote the files and the one that
-rewrote them from the same engine). On another machine, write them from the engine before a
-change, then check after it."""
+Both sides are computed with pinned numeric kernels (test/golden_outputs.py): numpy's and
+OpenBLAS's own choice of kernels per CPU moves ``cloe/parameters`` by up to 3e-8, which would make
+the test's outcome depend on the machine it runs on."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from test.golden_outputs import GOLDEN, bags, compare, golden_outputs
+from test.golden_outputs import (
+    GOLDEN,
+    PINNED_KERNELS,
+    REPO,
+    bags,
+    compare,
+    pinned_golden_outputs,
+)
 
 BAGS = bags()
 
@@ -27,7 +36,16 @@ def test_published_numbers_equal_the_golden_ones(bag):
     golden = GOLDEN / f'{bag.name}.npz'
     assert golden.is_file(), f'no golden outputs for {bag.name}: python scripts/golden.py write'
     want = dict(np.load(golden))
-    errors = compare(want, golden_outputs(bag))
+    errors = compare(want, pinned_golden_outputs(bag))
     assert want['counts'][1] > 0  # the bag has predictions to compare
     bad = {key: err for key, err in errors.items() if not err <= 1e-9}
     assert not bad, bad
+
+
+def test_the_golden_process_refuses_kernels_that_are_not_pinned():
+    # OpenBLAS's Core2 kernels run on every CPU numpy 2.4 runs on, and are not the pinned ones
+    env = {**os.environ, **PINNED_KERNELS, 'OPENBLAS_CORETYPE': 'Core2'}
+    run = subprocess.run([sys.executable, '-m', 'test.golden_outputs', 'no-bag', 'no-out.npz'],
+                         env=env, cwd=REPO, capture_output=True, text=True)
+    assert run.returncode != 0
+    assert 'the kernels are not pinned' in run.stderr

@@ -283,10 +283,36 @@ def _sparse_map(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 PHI_GATHER, XI_GATHER = _sparse_map(PHI_MAP), _sparse_map(XI_MAP)
-#: The outer product of each row's vectors, (N, rows, WIDTH) x2 -> (N, rows, WIDTH, WIDTH): the
-#: products of ``a[..., :, None] * b[..., None, :]``, bitwise, in one loop (broadcasting over
-#: an inner axis of 6 costs numpy a fifth more).
-_OUTER = 'nri,nrj->nrij'
+
+
+def _statistic_layout() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The entries of the (rows, WIDTH, WIDTH) statistics that can be non-zero, as the
+    identifier stores them (packed, :data:`N_PACKED` per vehicle): ``(p, i, j)`` with ``i`` and
+    ``j`` among row ``p``'s regressors (``< ROW_SIZE[p]``) and the decay entry (``WIDTH - 1``).
+    The others multiply a regressor or instrument entry that the row's mask holds at 0, so they
+    are 0 exactly. Returns each entry's row, its ``i`` and ``j`` as indices into a flattened
+    (rows, WIDTH) vector, and its index into a flattened (rows, WIDTH, WIDTH) matrix."""
+    rows, left, right = [], [], []
+    for p, size in enumerate(ROW_SIZE):
+        used = np.r_[0:size, WIDTH - 1]
+        i, j = np.meshgrid(used, used, indexing='ij')
+        rows += [p] * i.size
+        left += (p * WIDTH + i.ravel()).tolist()
+        right += (p * WIDTH + j.ravel()).tolist()
+    rows, left, right = (np.array(a, dtype=np.intp) for a in (rows, left, right))
+    return rows, left, right, left * WIDTH + right % WIDTH
+
+
+STAT_ROW, STAT_LEFT, STAT_RIGHT, STAT_FLAT = _statistic_layout()
+N_PACKED = len(STAT_ROW)
+#: Where each entry of a flattened (rows, WIDTH, WIDTH) matrix is packed (-1: always 0).
+STAT_PACKED = np.full(N_ROWS * WIDTH * WIDTH, -1, dtype=np.intp)
+STAT_PACKED[STAT_FLAT] = np.arange(N_PACKED)
+#: The statistics, in this order along the second axis of :attr:`IvIdentifier.statistics`: the
+#: short window's (forgotten at every step) first, then the long window's (gated).
+STATISTICS = ('cross_e', 'gram_xi', 'gram_phi', 'cross', 'gram_xi_long')
+CROSS_E, GRAM_XI, GRAM_PHI, CROSS, GRAM_XI_LONG = range(len(STATISTICS))
+_SHORT, _LONG = slice(0, 3), slice(3, 5)
 
 
 def _apply_map(f: np.ndarray, gather: tuple, out: np.ndarray, work: np.ndarray) -> None:
@@ -366,15 +392,21 @@ class _StepWork:
     rows: np.ndarray
     residual: np.ndarray
     nrw: np.ndarray
-    xp: np.ndarray
-    xx: np.ndarray
-    pp: np.ndarray
+    # (vehicles last, see IvIdentifier.statistics)
+    xi_t: np.ndarray
+    phi_t: np.ndarray
+    nrw_t: np.ndarray
+    increments: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    scratch: np.ndarray
+    mu_t: np.ndarray
     excited: np.ndarray
     mu: np.ndarray
 
     @classmethod
     def allocate(cls, n: int) -> _StepWork:
-        rw, rww = (n, N_ROWS, WIDTH), (n, N_ROWS, WIDTH, WIDTH)
+        rw = (n, N_ROWS, WIDTH)
         return cls(
             x_aux=np.zeros((n, N_STATES)), n12=np.zeros((n, N_STATES)),
             u=np.zeros((n, N_CHANNELS)), f=np.zeros((n, N_CHANNELS + 1)),
@@ -382,7 +414,11 @@ class _StepWork:
             nc2=np.zeros((n, N_CHANNELS)), nc3=np.zeros((n, N_CHANNELS, 3)),
             fx=np.zeros((n, N_CHANNELS, 3)), phi=np.zeros(rw), xi=np.zeros(rw),
             y=np.zeros((n, N_ROWS)), rows=np.zeros((n, N_ROWS)), residual=np.zeros((n, N_ROWS)),
-            nrw=np.zeros(rw), xp=np.zeros(rww), xx=np.zeros(rww), pp=np.zeros(rww),
+            nrw=np.zeros(rw), xi_t=np.zeros((N_ROWS * WIDTH, n)),
+            phi_t=np.zeros((N_ROWS * WIDTH, n)), nrw_t=np.zeros((N_ROWS * WIDTH, n)),
+            increments=np.zeros((3, N_PACKED, n)), left=np.zeros((N_PACKED, n)),
+            right=np.zeros((N_PACKED, n)), scratch=np.zeros((N_PACKED, n)),
+            mu_t=np.zeros((N_ROWS, n)),
             excited=np.zeros((n, N_ROWS), dtype=bool), mu=np.zeros((n, N_ROWS)),
         )  # fmt: skip
 
@@ -448,14 +484,11 @@ class IvIdentifier(Rows):
         # every vehicle keeps its own clocks, so that vehicles started at different times can
         # share one identifier (cloe_ros.core.rows)
         self._since_aux = np.zeros(n)
-        # normal equations and excitation statistics per row (normalised coordinates)
-        shape = (n, N_ROWS, WIDTH, WIDTH)
-        self.cross = np.zeros(shape)  # C = int xi phi^T (long window, gated)
+        # normal equations and excitation statistics per row (normalised coordinates), packed
+        # (see STATISTICS and _statistic_layout): short window xi phi^T, xi xi^T, phi phi^T;
+        # long window (gated) C = int xi phi^T and int xi xi^T (the estimate's covariance)
+        self.statistics = np.zeros((n, len(STATISTICS), N_PACKED))  # (see the property)
         self.rhs = np.zeros((n, N_ROWS, WIDTH))  # b = int xi y
-        self.gram_xi_long = np.zeros(shape)  # int xi xi^T on the same window (covariance)
-        self.cross_e = np.zeros(shape)  # short window: xi phi^T, xi xi^T, phi phi^T
-        self.gram_xi = np.zeros(shape)
-        self.gram_phi = np.zeros(shape)
         self.res2 = np.zeros((n, N_ROWS))  # residual power (short window)
         self.weight_e = np.zeros(n)  # integral of the short-window weight (residual mean)
         self.excitation = np.zeros((n, N_ROWS))
@@ -495,11 +528,38 @@ class IvIdentifier(Rows):
     ROW_FIELDS = (
         'theta', 'coupling', 'loops', '_fx', 'x_aux', '_aux_shift', '_last_r', '_aux_ad',
         '_aux_bd', 'aux_theta', 'aux_coupling', 'model_theta', 'model_coupling', 'model_kind',
-        '_since_aux', 'cross', 'rhs', 'gram_xi_long', 'cross_e', 'gram_xi', 'gram_phi', 'res2',
+        '_since_aux', 'statistics', 'rhs', 'res2',
         'weight_e', 'excitation', 'uncertainty', 'status', '_steps', '_t', '_prior_norm',
         '_rows', '_rows_slow', '_hist_z', '_hist_r', '_hist_active', '_hist_next',
         '_hist_count',
     )  # fmt: skip
+
+    @property
+    def statistics(self) -> np.ndarray:
+        """The packed statistics (N, len(STATISTICS), N_PACKED), a view: they are stored with the
+        vehicles as the innermost axis, so that the step's element-wise updates run along
+        contiguous memory (a third of the time of a leading vehicle axis at N = 100)."""
+        return np.moveaxis(self._statistics_t, -1, 0)
+
+    @statistics.setter
+    def statistics(self, value: np.ndarray) -> None:
+        self._statistics_t = np.ascontiguousarray(np.moveaxis(np.asarray(value, float), 0, -1))
+
+    def statistic(self, which: int, sel=slice(None)) -> np.ndarray:
+        """The statistic ``which`` (an index into :data:`STATISTICS`) of the vehicles ``sel``
+        as (n, rows, WIDTH, WIDTH) matrices: a new array, read-only."""
+        packed = self.statistics[sel, which]
+        out = np.zeros((len(packed), N_ROWS * WIDTH * WIDTH))
+        out[:, STAT_FLAT] = packed
+        out.flags.writeable = False
+        return out.reshape(-1, N_ROWS, WIDTH, WIDTH)
+
+    cross_e = property(lambda self: self.statistic(CROSS_E), doc='Short window: xi phi^T.')
+    gram_xi = property(lambda self: self.statistic(GRAM_XI), doc='Short window: xi xi^T.')
+    gram_phi = property(lambda self: self.statistic(GRAM_PHI), doc='Short window: phi phi^T.')
+    cross = property(lambda self: self.statistic(CROSS), doc='Long window: C = int xi phi^T.')
+    gram_xi_long = property(lambda self: self.statistic(GRAM_XI_LONG),
+                            doc='Long window: int xi xi^T (the covariance).')
 
     def shares_settings(self, other: Rows) -> bool:
         return isinstance(other, IvIdentifier) and (other.config, other.h) == (self.config, self.h)
@@ -638,21 +698,25 @@ class IvIdentifier(Rows):
             xi *= waiting[:, None, None]
             y *= waiting[:, None]
             mu_e = np.where(settled, mu_e, 1.0)
-        mu_e4, mu_e2 = (mu_e, mu_e) if waiting is None else (mu_e[:, None, None, None],
-                                                             mu_e[:, None])  # fmt: skip
-        xp, xx = w.xp, w.xx
-        np.einsum(_OUTER, xi, phi, out=xp)
-        xp *= h
-        np.einsum(_OUTER, xi, xi, out=xx)
-        xx *= h
-        self.cross_e *= mu_e4
-        self.cross_e += xp
-        self.gram_xi *= mu_e4
-        self.gram_xi += xx
-        self.gram_phi *= mu_e4
-        np.multiply(phi, h, out=w.nrw)
-        np.einsum(_OUTER, w.nrw, phi, out=w.pp)
-        self.gram_phi += w.pp
+        mu_e2 = mu_e if waiting is None else mu_e[:, None]
+        # the outer products' packed entries: xi phi^T h, xi xi^T h, (phi h) phi^T
+        # (vehicles last, as the statistics are stored)
+        n = len(zeta)
+        inc, left, right, xi_t, phi_t = w.increments, w.left, w.right, w.xi_t, w.phi_t
+        np.copyto(xi_t, xi.reshape(n, -1).T)
+        np.copyto(phi_t, phi.reshape(n, -1).T)
+        np.take(xi_t, STAT_LEFT, axis=0, out=left)
+        np.take(phi_t, STAT_RIGHT, axis=0, out=right)
+        np.multiply(left, right, out=inc[CROSS_E])
+        np.take(xi_t, STAT_RIGHT, axis=0, out=w.scratch)
+        np.multiply(left, w.scratch, out=inc[GRAM_XI])
+        inc[:GRAM_PHI] *= h
+        np.multiply(phi_t, h, out=w.nrw_t)
+        np.take(w.nrw_t, STAT_LEFT, axis=0, out=left)
+        np.multiply(left, right, out=inc[GRAM_PHI])
+        short = self._statistics_t[_SHORT]
+        short *= mu_e
+        short += inc
         residual = w.residual
         np.einsum('npj,npj->np', self._rows, phi, out=residual)
         np.subtract(y, residual, out=residual)
@@ -680,14 +744,15 @@ class IvIdentifier(Rows):
         mu = w.mu
         mu.fill(1.0)
         np.copyto(mu, self._mu, where=excited)
-        self.cross *= mu[..., None, None]
-        self.cross += xp
+        np.copyto(w.mu_t, mu.T)
+        np.take(w.mu_t, STAT_ROW, axis=0, out=w.scratch)
+        long = self._statistics_t[_LONG]  # (the same increments as CROSS_E, GRAM_XI)
+        long *= w.scratch
+        long += inc[: _LONG.stop - _LONG.start]
         self.rhs *= mu[..., None]
         np.multiply(xi, h, out=w.nrw)
         w.nrw *= y[..., None]
         self.rhs += w.nrw
-        self.gram_xi_long *= mu[..., None, None]
-        self.gram_xi_long += xx
         due = (self._steps % self._solve_every == 0) | (self._solve_every == 1)
         _for_due(self._solve, due if waiting is None else due & settled)
 
@@ -815,7 +880,8 @@ class IvIdentifier(Rows):
     def reference_rms(self) -> np.ndarray:
         """RMS of each block's filtered reference over the short window (N, 4), normalised."""
         idx = ROW_SIZE[: len(BLOCKS)] - 1  # the reference is the last entry of a block's row
-        power = self.gram_xi[:, np.arange(len(BLOCKS)), idx, idx]
+        diagonal = (np.arange(len(BLOCKS)) * WIDTH + idx) * WIDTH + idx  # (p, idx, idx)
+        power = self._statistics_t[GRAM_XI, STAT_PACKED[diagonal]].T
         return np.sqrt(np.maximum(power, 0.0) / np.maximum(self.weight_e, 1e-12)[:, None])
 
     def _solve(self, which: np.ndarray | None = None) -> None:
@@ -829,7 +895,7 @@ class IvIdentifier(Rows):
         sel = slice(None) if which is None else np.flatnonzero(which)
         w = self.config.prior_weight
         prior = self._prior_norm[sel]
-        lhs = self.cross[sel] + w * np.eye(WIDTH)
+        lhs = self.statistic(CROSS, sel) + w * np.eye(WIDTH)
         rhs = self.rhs[sel] + w * prior
         # (padded entries have zero regressors and instruments: the prior weight alone keeps them
         # at the prior, zero)
@@ -860,14 +926,16 @@ class IvIdentifier(Rows):
         # correlation time of the filtered residual; 4/lambda calibrated against the spread of
         # estimates over noise seeds (docs/identifier.md)
         tau = 4.0 / cfg.bandwidth
+        cross_e, gram_xi, gram_phi, cross, gram_xi_long = (
+            self.statistic(i, sel) for i in range(len(STATISTICS)))
         for size in np.unique(ROW_SIZE):
             ps = np.flatnonzero(ROW_SIZE == size)
             if not self._mask[ps[0], 0]:
                 continue
             k = slice(0, size)
-            gx = self.gram_xi[sel][:, ps][..., k, k]
-            gp = self.gram_phi[sel][:, ps][..., k, k]
-            c = self.cross_e[sel][:, ps][..., k, k]
+            gx = gram_xi[:, ps][..., k, k]
+            gp = gram_phi[:, ps][..., k, k]
+            c = cross_e[:, ps][..., k, k]
             wx = _inv_sqrt(gx)
             wp = _inv_sqrt(gp)
             s = np.linalg.svd(wx @ c @ wp, compute_uv=False)
@@ -877,8 +945,8 @@ class IvIdentifier(Rows):
             exc[:, ps] = np.where(rms > QUIET, np.nan_to_num(s[..., -1]), 0.0)
             # IV covariance s2 tau C^-1 G_xi C^-T of the estimate's (long) window, relative to
             # the row's size
-            c_long = self.cross[sel][:, ps][..., k, k]
-            gx_long = self.gram_xi_long[sel][:, ps][..., k, k]
+            c_long = cross[:, ps][..., k, k]
+            gx_long = gram_xi_long[:, ps][..., k, k]
             try:
                 ci = np.linalg.inv(c_long + self.config.prior_weight * np.eye(size))
                 cov = np.einsum('...ij,...jk,...lk->...il', ci, gx_long, ci)
@@ -916,8 +984,7 @@ class IvIdentifier(Rows):
     def _broken_statistics(self, which: np.ndarray | None) -> np.ndarray:
         """Vehicles (a mask (N,)) among ``which`` whose statistics are not all finite."""
         ok = np.isfinite(self.res2).all(axis=1) & np.isfinite(self._rows).all(axis=(1, 2))
-        for stat in (self.cross, self.cross_e, self.gram_xi, self.gram_phi, self.gram_xi_long):
-            ok &= np.isfinite(stat).all(axis=(1, 2, 3))
+        ok &= np.isfinite(self._statistics_t).all(axis=(0, 1))
         return ~ok if which is None else which & ~ok
 
     @property

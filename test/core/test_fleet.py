@@ -139,7 +139,7 @@ def test_a_vehicle_that_diverges_in_a_batch_restarts_alone(flight):
             out[v] += estimates
         b = fleet.engines['/b'].estimator
         if not poisoned and b is not None and fleet.engines['/b'].stats.steps > 800:
-            b.pool.est.identifier.cross_e[b.pool.rows['/b']] = np.nan
+            b.pool.est.identifier.statistics[b.pool.rows['/b']] = np.nan
             poisoned = True
     assert poisoned
     assert fleet.engines['/b'].stats.diverged == 1

@@ -20,6 +20,7 @@ from cloe_ros.core.engine import (
 from cloe_ros.core.estimator import EstimatorConfig
 from cloe_ros.core.evaluation import run_engine, status_calibration
 from cloe_ros.core.identifier import (
+    CROSS_E,
     IDENTIFIED,
     LOOP_ROWS,
     NOT_IDENTIFIABLE,
@@ -489,7 +490,7 @@ def test_a_vehicle_whose_statistics_overflow_fails_alone_in_a_batch():
     failed = []
     for k in range(1, len(z)):
         if k == 600:
-            pair.cross_e[1, 0, 0, 0] = np.nan  # (the SVD would raise for both vehicles)
+            pair.statistics[1, CROSS_E, 0] = np.nan  # (the SVD would raise for both vehicles)
         pair.step(np.stack([z[k], z[k]]), np.stack([r[k], r[k]]))
         alone.step(z[k][None], r[k][None])
         if not np.all(np.isfinite(pair.theta[1])):
@@ -531,6 +532,37 @@ def test_the_filters_tustin_step_is_scipys_to_the_bit():
         want = cont2discrete((a, b, c, d), h, method='bilinear')[:4]
         for got, expected in zip(tustin(a, b, c, d, h), want):
             np.testing.assert_array_equal(got, expected)
+
+
+def test_the_packed_statistics_are_the_full_outer_products_and_leave_out_only_zeros():
+    """The identifier keeps only the entries of its (rows, 6, 6) statistics that the rows' masks
+    let be non-zero: unpacked, the short window's equal the forgotten sums of the full outer
+    products of each step's regressors and instruments, and ``reference_rms`` reads their
+    diagonal where the full matrices have it."""
+    _, _, r, z = reduced_loop_flight((6.0, 2.5), duration=8.0)
+    ident = IvIdentifier(IdentifierConfig(), H, z[0][None], r[0][None])
+    full = {name: np.zeros((1, 8, 6, 6)) for name in ('cross_e', 'gram_xi', 'gram_phi')}
+    for k in range(1, len(z)):
+        ident.step(z[k][None], r[k][None])
+        if not ident._t[0] >= ident._settle:
+            continue
+        xi, phi = ident._work.xi, ident._work.phi
+        outer = {'cross_e': xi[..., :, None] * phi[..., None, :],
+                 'gram_xi': xi[..., :, None] * xi[..., None, :],
+                 'gram_phi': phi[..., :, None] * phi[..., None, :]}  # fmt: skip
+        for name, stat in full.items():
+            stat *= ident._mu_e
+            stat += H * outer[name]
+    assert ident._steps[0] > 200
+    for name, stat in full.items():
+        assert np.count_nonzero(stat) > 100
+        np.testing.assert_allclose(getattr(ident, name), stat, rtol=1e-12, atol=1e-15)
+    blocks = np.arange(4)
+    idx = np.array([5, 5, 3, 3]) - 1  # each block's reference entry
+    power = full['gram_xi'][:, blocks, idx, idx]
+    want = np.sqrt(power / ident.weight_e[:, None])
+    np.testing.assert_allclose(ident.reference_rms(), want, rtol=1e-12)
+    assert np.count_nonzero(want > 1e-3) >= 2  # (the flight moves x and y)
 
 
 def test_the_step_allocates_no_array_the_size_of_the_statistics():

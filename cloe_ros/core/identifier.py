@@ -290,8 +290,10 @@ def _statistic_layout() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     identifier stores them (packed, :data:`N_PACKED` per vehicle): ``(p, i, j)`` with ``i`` and
     ``j`` among row ``p``'s regressors (``< ROW_SIZE[p]``) and the decay entry (``WIDTH - 1``).
     The others multiply a regressor or instrument entry that the row's mask holds at 0, so they
-    are 0 exactly. Returns each entry's row, its ``i`` and ``j`` as indices into a flattened
-    (rows, WIDTH) vector, and its index into a flattened (rows, WIDTH, WIDTH) matrix."""
+    are 0 exactly (while the statistics are finite: a non-finite one is caught as broken in the
+    packed entries, the only ones the estimate reads). Returns each entry's row, its ``i`` and
+    ``j`` as indices into a flattened (rows, WIDTH) vector, and its index into a flattened
+    (rows, WIDTH, WIDTH) matrix."""
     rows, left, right = [], [], []
     for p, size in enumerate(ROW_SIZE):
         used = np.r_[0:size, WIDTH - 1]
@@ -487,7 +489,7 @@ class IvIdentifier(Rows):
         # normal equations and excitation statistics per row (normalised coordinates), packed
         # (see STATISTICS and _statistic_layout): short window xi phi^T, xi xi^T, phi phi^T;
         # long window (gated) C = int xi phi^T and int xi xi^T (the estimate's covariance)
-        self.statistics = np.zeros((n, len(STATISTICS), N_PACKED))  # (see the property)
+        self.statistics = np.zeros((n, len(STATISTICS), N_PACKED))  # (stored vehicles last)
         self.rhs = np.zeros((n, N_ROWS, WIDTH))  # b = int xi y
         self.res2 = np.zeros((n, N_ROWS))  # residual power (short window)
         self.weight_e = np.zeros(n)  # integral of the short-window weight (residual mean)
@@ -537,8 +539,9 @@ class IvIdentifier(Rows):
     @property
     def statistics(self) -> np.ndarray:
         """The packed statistics (N, len(STATISTICS), N_PACKED), a view: they are stored with the
-        vehicles as the innermost axis, so that the step's element-wise updates run along
-        contiguous memory (a third of the time of a leading vehicle axis at N = 100)."""
+        vehicles as the innermost axis, so that the step's gathers and element-wise updates run
+        along contiguous memory (at N = 100, 63 µs a step against 142 µs with the vehicles
+        first, in a microbenchmark of the updates alone)."""
         return np.moveaxis(self._statistics_t, -1, 0)
 
     @statistics.setter

@@ -6,8 +6,8 @@ the state and the ``cloe/parameters`` values of every ``--every``-th estimate, t
 positions and 95 % radii at 0.5, 1, 2, 5 and 10 s of every ``--every-prediction``-th prediction,
 the counts, and sums over the whole run (so that no estimate goes unchecked). Both compute them
 in a child process whose numeric kernels are pinned (test/golden_outputs.py), so that they are
-the same on every x86-64 machine. Rebuild them only
-when a change is meant to change the numbers, and say so in the commit:
+the same on every x86-64 machine. Rebuild them only when a change is meant to change the
+numbers, and say so in the commit:
 
     python scripts/golden.py write            # test/golden/*.npz
     python scripts/golden.py check            # what the test checks, with the largest errors

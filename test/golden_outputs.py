@@ -76,18 +76,24 @@ def golden_outputs(bag: Path) -> dict[str, np.ndarray]:
 def pinned_golden_outputs(bag: Path) -> dict[str, np.ndarray]:
     """:func:`golden_outputs` of ``bag``, computed in a child process with :data:`PINNED_KERNELS`
     and the ``cloe_ros`` this process imports."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / 'outputs.npz'
+        run_golden_process(bag, out, check=True)
+        with np.load(out) as saved:
+            return dict(saved)
+
+
+def run_golden_process(bag: Path | str, out: Path | str, kernels: dict[str, str] = PINNED_KERNELS,
+                       **run_args) -> subprocess.CompletedProcess:
+    """Run ``python -m test.golden_outputs BAG OUT`` with ``kernels`` in its environment and the
+    ``cloe_ros`` this process imports (``run_args`` go to :func:`subprocess.run`)."""
     import cloe_ros
 
     paths = [str(REPO), str(Path(cloe_ros.__file__).resolve().parents[1])]
     old = os.environ.get('PYTHONPATH')
-    env = {**os.environ, **PINNED_KERNELS,
-           'PYTHONPATH': os.pathsep.join(paths + ([old] if old else []))}
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / 'outputs.npz'
-        subprocess.run([sys.executable, '-m', 'test.golden_outputs', str(bag), str(out)],
-                       env=env, cwd=REPO, check=True)
-        with np.load(out) as saved:
-            return dict(saved)
+    env = {**os.environ, **kernels, 'PYTHONPATH': os.pathsep.join(paths + ([old] if old else []))}
+    return subprocess.run([sys.executable, '-m', 'test.golden_outputs', str(bag), str(out)],
+                          env=env, cwd=REPO, **run_args)
 
 
 def check_pinned_kernels() -> None:

@@ -11,20 +11,16 @@ the test's outcome depend on the machine it runs on."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
 from test.golden_outputs import (
     GOLDEN,
     PINNED_KERNELS,
-    REPO,
     bags,
     compare,
     pinned_golden_outputs,
+    run_golden_process,
 )
 
 BAGS = bags()
@@ -44,8 +40,7 @@ def test_published_numbers_equal_the_golden_ones(bag):
 
 def test_the_golden_process_refuses_kernels_that_are_not_pinned():
     # OpenBLAS's Core2 kernels run on every CPU numpy 2.4 runs on, and are not the pinned ones
-    env = {**os.environ, **PINNED_KERNELS, 'OPENBLAS_CORETYPE': 'Core2'}
-    run = subprocess.run([sys.executable, '-m', 'test.golden_outputs', 'no-bag', 'no-out.npz'],
-                         env=env, cwd=REPO, capture_output=True, text=True)
+    kernels = {**PINNED_KERNELS, 'OPENBLAS_CORETYPE': 'Core2'}
+    run = run_golden_process('no-bag', 'no-out.npz', kernels, capture_output=True, text=True)
     assert run.returncode != 0
     assert 'the kernels are not pinned' in run.stderr

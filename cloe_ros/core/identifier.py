@@ -749,9 +749,9 @@ class IvIdentifier(Rows):
         np.copyto(mu, self._mu, where=excited)
         np.copyto(w.mu_t, mu.T)
         np.take(w.mu_t, STAT_ROW, axis=0, out=w.scratch)
-        long = self._statistics_t[_LONG]  # (the same increments as CROSS_E, GRAM_XI)
+        long = self._statistics_t[_LONG]
         long *= w.scratch
-        long += inc[: _LONG.stop - _LONG.start]
+        long += inc[:GRAM_PHI]  # (xi phi^T h and xi xi^T h, as for CROSS_E and GRAM_XI)
         self.rhs *= mu[..., None]
         np.multiply(xi, h, out=w.nrw)
         w.nrw *= y[..., None]

@@ -562,10 +562,18 @@ def test_diagnostics_name_each_vehicle_by_its_recorded_namespace(context, namesp
         statuses = [inf.vehicle_status(v, 0.0) for v in inf.vehicles]
         assert [s.hardware_id for s in statuses] == expected
         assert [s.name for s in statuses] == [f'cloe_inference: {ns}' for ns in expected]
-        topics = {name for name, _ in inf.get_subscriber_names_and_types_by_node(
-            'cloe_inference', namespace)}  # fmt: skip
-        for ns in expected:
-            assert f'{ns.rstrip("/")}/odom' in topics
+        # (the node's own subscriptions reach its graph cache asynchronously: wait for them)
+        wanted = {f'{ns.rstrip("/")}/odom' for ns in expected}
+
+        def subscribed() -> set[str]:
+            return {name for name, _ in inf.get_subscriber_names_and_types_by_node(
+                'cloe_inference', namespace)}  # fmt: skip
+
+        ex = _executor(context, inf)
+        try:
+            assert spin_until(ex, lambda: wanted <= subscribed(), TIMEOUT), (wanted, subscribed())
+        finally:
+            ex.shutdown()
     finally:
         inf.destroy_node()
 

@@ -34,6 +34,8 @@ setup(
         'mcap>=1.6',
         # one BLAS thread in the package's processes (cloe_ros/threads.py)
         'threadpoolctl>=3.5',
+        # compiled kernels of the per-vehicle hot paths (cloe_ros/core/kernels.py)
+        'numba>=0.60',
     ],
     extras_require={
         # `cloe live`: the Foxglove WebSocket server (a 19 MB wheel, 53 MB installed)

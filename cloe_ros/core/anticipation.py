@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cloe_ros.core import kernels
 from cloe_ros.core.model import (
     BLOCK_SLICES,
     BLOCKS,
@@ -213,53 +214,14 @@ class History:
 
     def at(self, times: np.ndarray, column: str, channels) -> np.ndarray:
         """``column`` (a field name) interpolated at ``times`` (...,) for ``channels``:
-        (..., len(channels)); NaN outside the held span."""
-        t = self.ordered('t')
+        (..., len(channels)), with the arithmetic of ``np.interp`` (the same values); NaN
+        outside the held span."""
         times = np.asarray(times, float)
-        out = np.full((*times.shape, len(channels)), np.nan)
-        if len(t) < 1:
-            return out
-        data = self.ordered(column)
-        low, high = t[0] - 1e-9, t[-1] + 1e-9
-        if times.size == 1:  # one time: its two rows, all channels at once
-            x = float(times.reshape(-1)[0])
-            if low <= x <= high:
-                out.reshape(-1, len(channels))[0] = _interp_row(t, data, x)[channels]
-            return out
-        inside = (times >= low) & (times <= high)
-        out[inside] = _interp_rows(t, data, times[inside], channels)
-        return out
-
-
-def _interp_row(t: np.ndarray, data: np.ndarray, x: float) -> np.ndarray:
-    """The rows of ``data`` (T, C), sampled at the increasing ``t`` (T,), interpolated at ``x``
-    with the arithmetic of ``np.interp`` (the same values): a sample's own time, and the ends,
-    give the sample itself."""
-    j = int(np.searchsorted(t, x, side='right')) - 1
-    if j < 0:
-        return data[0]
-    if j >= len(t) - 1 or t[j] == x:
-        return data[j]
-    slope = (data[j + 1] - data[j]) / (t[j + 1] - t[j])
-    return slope * (x - t[j]) + data[j]
-
-
-def _interp_rows(t: np.ndarray, data: np.ndarray, x: np.ndarray, channels) -> np.ndarray:
-    """:func:`_interp_row` at each of the times ``x`` (M,), for ``channels``: (M, C), every
-    channel in one pass with the arithmetic of ``np.interp`` (the same values)."""
-    if len(t) == 1:
-        return np.broadcast_to(data[0, channels], (len(x), len(channels))).copy()
-    j = np.searchsorted(t, x, side='right') - 1
-    k = np.clip(j, 0, len(t) - 2)
-    t0 = t[k]
-    d0, d1 = data[k][:, channels], data[k + 1][:, channels]
-    slope = (d1 - d0) / (t[k + 1] - t0)[:, None]
-    out = slope * (x - t0)[:, None] + d0
-    same = (j >= 0) & (j < len(t) - 1) & (t0 == x)  # a sample's own time: the sample
-    out[same] = d0[same]
-    out[j < 0] = data[0, channels]
-    out[j >= len(t) - 1] = data[-1, channels]
-    return out
+        channels = np.asarray(channels, dtype=np.intp)
+        out = np.empty((times.size, len(channels)))
+        kernels.interpolate(self.ordered('t'), self.ordered(column),
+                            np.ascontiguousarray(times.reshape(-1)), channels, out)  # fmt: skip
+        return out.reshape(*times.shape, len(channels))
 
 
 # ------------------------------------------------------------------------------ intent
@@ -304,11 +266,17 @@ def harmonic_fits_batch(
     (V, K, C) and (V, K, len(joint)), each series' as it gets alone (every product is per
     series and frequency)."""
     wt = omegas[None, :, None] * t[:, None, :]  # (V, W, T)
-    basis = np.stack([np.ones_like(wt), np.cos(wt), np.sin(wt)], axis=-1)  # (V, W, T, 3)
+    basis = np.empty((*wt.shape, 3))  # (V, W, T, 3): 1, cos, sin (written in place: the
+    basis[..., 0] = 1.0  # temporaries of this function are most of its time)
+    np.cos(wt, out=basis[..., 1])
+    np.sin(wt, out=basis[..., 2])
     basis_t = np.swapaxes(basis, -1, -2)  # (V, W, 3, T); matmul (BLAS), 3x einsum's speed here
-    gram = basis_t @ basis + 1e-9 * np.eye(3)
+    gram = basis_t @ basis
+    gram += 1e-9 * np.eye(3)
     coef = np.linalg.solve(gram, basis_t @ y[:, None])  # (V, W, 3, C)
-    resid = np.sum((basis @ coef - y[:, None]) ** 2, axis=-2)  # (V, W, C)
+    fit = basis @ coef
+    fit -= y[:, None]
+    resid = np.sum(np.square(fit, out=fit), axis=-2)  # (V, W, C)
     series = np.arange(len(t))[:, None]
 
     def extrapolate(best: np.ndarray, columns: np.ndarray) -> np.ndarray:  # best (V, C')
@@ -536,17 +504,6 @@ def run_together(all_steps: list, failures: tuple = (ArithmeticError, np.linalg.
     return values
 
 
-def _occurrence(values: np.ndarray) -> np.ndarray:
-    """For each entry of the integer array ``values``, how many equal ones come before it."""
-    order = np.argsort(values, kind='stable')
-    sorted_ = values[order]
-    group_start = np.flatnonzero(np.r_[True, sorted_[1:] != sorted_[:-1]])
-    counts = np.diff(np.r_[group_start, len(values)])
-    out = np.empty(len(values), dtype=np.intp)
-    out[order] = np.arange(len(values)) - np.repeat(group_start, counts)
-    return out
-
-
 @dataclass(frozen=True)
 class Scores:
     """Poses scored by :meth:`Ensemble.score`, by prediction (in slot order), then horizon: the
@@ -609,51 +566,25 @@ class Ensemble:
         self._next = (slot + 1) % len(self._pending_t)
         return slot
 
-    def score(self, since: float, now: float, truth, detail: bool = True) -> Scores | None:
-        """Score the poses whose times fall in ``(since, now]``; ``truth(times (...,))`` gives
-        their true values (..., D), NaN where unknown. Returns the scored poses (nothing unless
-        ``detail``)."""
-        out = None
-        if detail:
-            out = Scores(np.zeros(0, np.intp), np.zeros(0), np.zeros(0, np.intp),
-                         np.zeros((0, len(self.names))))  # fmt: skip
-        live = np.flatnonzero(np.isfinite(self._pending_t))
-        issued = self._pending_t[live]
-        times = issued[:, None] + self.offsets[None, :]  # (P, K)
-        due = (times > since + 1e-9) & (times <= now + 1e-9)
-        self._pending_t[live[times[:, -1] <= now + 1e-9]] = np.nan  # every pose is due: done
-        if not due.any():
-            return out
-        # the truth of every due pose in one call, and every scored pose's errors in one
-        rows, ks = np.nonzero(due)  # (the order of times[due]: by prediction, then horizon)
-        actual = truth(times[due])  # (n, D)
-        ok = np.isfinite(actual).all(axis=1)
-        rows, ks, actual = rows[ok], ks[ok], actual[ok]
-        if not len(rows):
-            return out
-        err = self._pending[live[rows], :, ks] - actual[:, None, :]  # (n, M, D)
-        cross = np.einsum('pmd,pnd->pmn', err, err)
-        # each horizon's scores weighed in in the predictions' order: the first score of every
-        # horizon at once, then the second (a horizon scored twice in one call), ...
-        if np.bincount(ks).max() == 1:  # (each once, as between two predictions)
-            self._accumulate(ks, cross)
-        else:
-            repeat = _occurrence(ks)
-            for j in range(int(repeat.max()) + 1):
-                take = repeat == j
-                self._accumulate(ks[take], cross[take])
-        if not detail:
-            return out
-        squared = np.einsum('pmd,pmd->pm', err, err)
-        return Scores(live[rows], issued[rows], ks, squared)
-
-    def _accumulate(self, ks: np.ndarray, cross: np.ndarray) -> None:
-        """Weigh one prediction's scores in: each horizon's cross-products are an exponentially
-        weighted mean over the predictions scored at it (the first score is the estimate)."""
-        first = ~self.scored[ks]
-        alpha = np.where(first, 1.0, self._alpha)
-        self.cross[ks] += alpha[:, None, None] * (cross - self.cross[ks])
-        self.scored[ks] = True
+    def score(
+        self, since: float, now: float, t: np.ndarray, truth: np.ndarray, channels: np.ndarray
+    ) -> Scores:
+        """Score the poses whose times fall in ``(since, now]`` against the true values
+        ``truth[:, channels]`` (T, D) sampled at the increasing ``t`` (T,) s, interpolated
+        (poses outside their span are not scored); forget the predictions all of whose poses
+        are due. Each horizon's scores are weighed in in the predictions' order (the first
+        score of a horizon is its estimate, see :class:`Ensemble`). Returns the scored poses,
+        by prediction (in slot order), then horizon."""
+        size = self._pending.shape[0] * len(self.offsets)
+        slots, horizons = np.empty(size, np.intp), np.empty(size, np.intp)
+        issued, squared = np.empty(size), np.empty((size, len(self.names)))
+        n = kernels.score_ensemble(
+            self._pending_t, self._pending, self.offsets, since, now,
+            np.ascontiguousarray(t, dtype=float), np.asarray(truth, dtype=float),
+            np.asarray(channels, dtype=np.intp), self.cross, self.scored, self._alpha, slots,
+            issued, horizons, squared,
+        )  # fmt: skip
+        return Scores(slots[:n], issued[:n], horizons[:n], squared[:n])
 
     def expected_cross(self) -> np.ndarray:
         """The error cross-products per horizon (K, M, M), unscored horizons extrapolated."""
@@ -1044,8 +975,8 @@ class Anticipator:
         since = -np.inf if self._scored_to is None else self._scored_to
         self._scored_to = t
         hist = self.history
-        truth = lambda times: hist.at(times, 'measured', POSITION)  # noqa: E731
-        scored = self.guard.score(since, t, truth)
+        held_t = hist.ordered('t')
+        scored = self.guard.score(since, t, held_t, hist.ordered('measured'), POSITION)
         slots, ks = scored.slots, scored.horizons
         errors = np.sqrt(scored.squared[:, -1])  # the published prediction's
         radii, scales = self._radii[slots, ks], self._scales[slots, ks]
@@ -1056,8 +987,7 @@ class Anticipator:
             starts = np.flatnonzero(np.r_[True, slots[1:] != slots[:-1]])
             for a, b in zip(starts, [*starts[1:], len(slots)]):
                 self.radius.update(ks[a:b], errors[a:b], radii[a:b], scales[a:b])
-        logged = lambda times: hist.at(times, 'logged', POSITION_CHANNELS)  # noqa: E731
-        self.intent_scores.score(since, t, logged, detail=False)
+        self.intent_scores.score(since, t, held_t, hist.ordered('logged'), POSITION_CHANNELS)
         self.virtual.update(np.asarray(theta, float), np.asarray(coupling, float), BLOCKS)
         yield from self._update_trust_steps(t, theta, coupling)
 

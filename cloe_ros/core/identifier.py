@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg
 
+from cloe_ros.core import kernels
 from cloe_ros.core.model import (
     BLOCK_SLICES,
     BLOCKS,
@@ -375,54 +376,47 @@ def block_is_stable(
 
 @dataclass
 class _StepWork:
-    """Work arrays of :meth:`IvIdentifier.step` for N vehicles, allocated once: the step writes
-    its intermediate results into them (``x_aux`` and ``fx`` are swapped with the identifier's
-    own), so that it allocates no array the size of the statistics."""
+    """Work arrays of :meth:`IvIdentifier.step` for N vehicles, allocated once: the step's
+    kernels (:mod:`cloe_ros.core.kernels`) write their intermediate results into them, so
+    that the step allocates no array the size of the statistics."""
 
-    x_aux: np.ndarray
-    n12: np.ndarray
-    u: np.ndarray
     f: np.ndarray
     d: np.ndarray
-    nc: np.ndarray
-    nc2: np.ndarray
-    nc3: np.ndarray
-    fx: np.ndarray
     phi: np.ndarray
     xi: np.ndarray
     y: np.ndarray
-    rows: np.ndarray
-    residual: np.ndarray
-    nrw: np.ndarray
-    # (vehicles last, see IvIdentifier.statistics)
-    xi_t: np.ndarray
-    phi_t: np.ndarray
-    nrw_t: np.ndarray
     increments: np.ndarray
-    left: np.ndarray
-    right: np.ndarray
-    scratch: np.ndarray
-    mu_t: np.ndarray
+    ones: np.ndarray
+    ones_rows: np.ndarray
     excited: np.ndarray
-    mu: np.ndarray
 
     @classmethod
     def allocate(cls, n: int) -> _StepWork:
-        rw = (n, N_ROWS, WIDTH)
         return cls(
-            x_aux=np.zeros((n, N_STATES)), n12=np.zeros((n, N_STATES)),
-            u=np.zeros((n, N_CHANNELS)), f=np.zeros((n, N_CHANNELS + 1)),
-            d=np.zeros((n, N_CHANNELS)), nc=np.zeros((n, N_CHANNELS)),
-            nc2=np.zeros((n, N_CHANNELS)), nc3=np.zeros((n, N_CHANNELS, 3)),
-            fx=np.zeros((n, N_CHANNELS, 3)), phi=np.zeros(rw), xi=np.zeros(rw),
-            y=np.zeros((n, N_ROWS)), rows=np.zeros((n, N_ROWS)), residual=np.zeros((n, N_ROWS)),
-            nrw=np.zeros(rw), xi_t=np.zeros((N_ROWS * WIDTH, n)),
-            phi_t=np.zeros((N_ROWS * WIDTH, n)), nrw_t=np.zeros((N_ROWS * WIDTH, n)),
-            increments=np.zeros((3, N_PACKED, n)), left=np.zeros((N_PACKED, n)),
-            right=np.zeros((N_PACKED, n)), scratch=np.zeros((N_PACKED, n)),
-            mu_t=np.zeros((N_ROWS, n)),
-            excited=np.zeros((n, N_ROWS), dtype=bool), mu=np.zeros((n, N_ROWS)),
+            f=np.zeros((n, N_CHANNELS + 1)), d=np.zeros((n, N_CHANNELS)),
+            phi=np.zeros((n, N_ROWS * WIDTH)), xi=np.zeros((n, N_ROWS * WIDTH)),
+            y=np.zeros((n, N_ROWS)), increments=np.zeros((3, N_PACKED, n)), ones=np.ones(n),
+            ones_rows=np.ones((n, N_ROWS)), excited=np.zeros((n, N_ROWS), dtype=bool),
         )  # fmt: skip
+
+
+def _target_gathers() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:data:`Y_F_MAP` as gathers of at most two channels per row (channels (2, rows),
+    coefficients (2, rows)), and :data:`Y_D_MAP` of one (rows,): with two terms at most, a
+    product with the map is their sum in any order, the same as the matrix product's."""
+    f_channels, f_coefficients = np.zeros((2, N_ROWS), dtype=np.intp), np.zeros((2, N_ROWS))
+    d_channels, d_coefficients = np.zeros(N_ROWS, dtype=np.intp), np.zeros(N_ROWS)
+    for p in range(N_ROWS):
+        (used,) = np.nonzero(Y_F_MAP[p])
+        (single,) = np.nonzero(Y_D_MAP[p])
+        if len(used) > 2 or len(single) > 1:
+            raise ValueError('a target maps more channels than its gather holds')
+        f_channels[: len(used), p], f_coefficients[: len(used), p] = used, Y_F_MAP[p, used]
+        d_channels[p], d_coefficients[p] = single[0], Y_D_MAP[p, single[0]]
+    return f_channels, f_coefficients, d_channels, d_coefficients
+
+
+Y_F_GATHER_C, Y_F_GATHER_A, Y_D_GATHER_C, Y_D_GATHER_A = _target_gathers()
 
 
 class IvIdentifier(Rows):
@@ -464,7 +458,9 @@ class IvIdentifier(Rows):
         self.loops = np.tile(self.loop_prior, (n, 1, 1))
         # filter bank, started in steady state for the first sample (constants are filtered out)
         ad, bd, cf, df, cd, dd = filter_matrices(config.bandwidth, config.highpass, self.h)
-        self._ad_t, self._bd, self._cf, self._df, self._cd, self._dd = ad.T, bd, cf, df, cd, dd
+        self._ad_t, self._bd, self._cf, self._df, self._cd, self._dd = (
+            *map(np.ascontiguousarray, (ad.T, bd, cf)), float(df), np.ascontiguousarray(cd),
+            float(dd))  # (contiguous, as the kernels take them)
         x_ss = np.linalg.solve(np.eye(3) - ad, bd)  # state for a constant unit input
         u0 = self._channels(zeta0, r0, zeta0)
         self._fx = u0[..., None] * x_ss  # (N, C, 3)
@@ -505,6 +501,7 @@ class IvIdentifier(Rows):
         self._mask[:, WIDTH - 1] = True
         if not config.estimate_coupling:
             self._mask[list(COUPLING_ROWS)] = False
+        self._mask_flat = self._mask.ravel()
         self._t = np.zeros(n)  # time since the start
         # the estimate is solved at 20 Hz, the excitation measured at 4 Hz (both cheap enough)
         self._solve_every = max(1, round(0.05 / self.h))
@@ -643,97 +640,34 @@ class IvIdentifier(Rows):
                 active = np.broadcast_to(active[:, None], (active.shape[0], N_ROWS))
             if active.all():
                 active = None
-        k, every = self._hist_next, np.arange(len(zeta))
-        self._hist_z[every, k] = zeta
-        self._hist_r[every, k] = r
-        self._hist_active[every, k] = True if active is None else active.all(axis=1)
-        k += 1
-        k %= self._hist_z.shape[1]
-        self._hist_count += 1
-        # auxiliary model: driven by the reference only (into work arrays, then swapped in)
-        w = self._work
-        np.einsum('nij,nj->ni', self._aux_ad, self.x_aux, out=w.x_aux)
-        np.einsum('nij,nj->ni', self._aux_bd, r, out=w.n12)
-        w.x_aux += w.n12
-        self.x_aux, w.x_aux = w.x_aux, self.x_aux
-        self._last_r[:] = r
-        np.subtract(self.x_aux, self._aux_shift, out=w.n12)
-        u = self._channels(zeta, r, w.n12, out=w.u)
-        x = self._fx
+        zeta = np.ascontiguousarray(zeta, dtype=float)
+        r = np.ascontiguousarray(r, dtype=float)
+        n, w = len(zeta), self._work
         self._t += h
-        f = w.f
-        np.matmul(x, self._cf, out=w.nc)
-        np.multiply(self._df, u, out=w.nc2)
-        np.add(w.nc, w.nc2, out=f[:, :N_CHANNELS])  # F{u}
-        f[:, _DECAY] = np.exp(-cfg.highpass * self._t)
-        d = w.d
-        np.matmul(x, self._cd, out=d)
-        np.multiply(self._dd, u, out=w.nc2)
-        d += w.nc2  # sF{u}  (N, C)
-        np.matmul(x, self._ad_t, out=w.fx)
-        np.multiply(u[..., None], self._bd, out=w.nc3)
-        w.fx += w.nc3
-        self._fx, w.fx = w.fx, self._fx
+        decay = np.exp(-cfg.highpass * self._t)
+        whole = np.ones(n, dtype=bool) if active is None else active.all(axis=1)
         # the statistics start once the filters' fast modes are gone; in a batch whose vehicles
-        # started at different times, those still settling take part with no weight
+        # started at different times, those still settling take part with no weight (nothing
+        # added, nothing forgotten, no clock advanced)
         settled = self._t >= self._settle
+        weight = w.ones if settled.all() else settled.astype(float)
+        gate = w.ones_rows if active is None else np.ascontiguousarray(active, dtype=float)
+        kernels.iv_filter(
+            zeta, r, whole, decay, self._hist_z, self._hist_r, self._hist_active,
+            self._hist_next, self._hist_count, self._aux_ad, self._aux_bd, self.x_aux,
+            self._last_r, self._aux_shift, self._fx, self._cf, self._df, self._cd, self._dd,
+            self._ad_t, self._bd, STATE_SCALE, REFERENCE_SCALE, PHI_GATHER[0], PHI_GATHER[1],
+            XI_GATHER[0], XI_GATHER[1], self._mask_flat, Y_F_GATHER_C, Y_F_GATHER_A,
+            Y_D_GATHER_C, Y_D_GATHER_A, gate, weight, h, w.f, w.d, w.phi, w.xi, w.y,
+        )  # fmt: skip
         if not settled.any():
             return
-        waiting = None if settled.all() else settled.astype(float)
-        phi, xi, y = w.phi, w.xi, w.y
-        _apply_map(f, PHI_GATHER, phi, w.nrw)  # (N, rows, WIDTH)
-        phi *= self._mask
-        _apply_map(f, XI_GATHER, xi, w.nrw)
-        xi *= self._mask
-        np.matmul(f, Y_F_MAP.T, out=y)  # (N, rows)
-        np.matmul(d, Y_D_MAP.T, out=w.rows)
-        y += w.rows
-
-        # short-window statistics (always forgetting) and the excitation gate
-        if active is not None:
-            gate = active.astype(float)
-            phi *= gate[:, :, None]
-            xi *= gate[:, :, None]
-            y *= gate
-        mu_e = self._mu_e
-        if waiting is not None:  # (nothing added, nothing forgotten, no clock advanced)
-            phi *= waiting[:, None, None]
-            xi *= waiting[:, None, None]
-            y *= waiting[:, None]
-            mu_e = np.where(settled, mu_e, 1.0)
-        mu_e2 = mu_e if waiting is None else mu_e[:, None]
-        # the outer products' packed entries: xi phi^T h, xi xi^T h, (phi h) phi^T
-        # (vehicles last, as the statistics are stored)
-        n = len(zeta)
-        inc, left, right, xi_t, phi_t = w.increments, w.left, w.right, w.xi_t, w.phi_t
-        np.copyto(xi_t, xi.reshape(n, -1).T)
-        np.copyto(phi_t, phi.reshape(n, -1).T)
-        np.take(xi_t, STAT_LEFT, axis=0, out=left)
-        np.take(phi_t, STAT_RIGHT, axis=0, out=right)
-        np.multiply(left, right, out=inc[CROSS_E])
-        np.take(xi_t, STAT_RIGHT, axis=0, out=w.scratch)
-        np.multiply(left, w.scratch, out=inc[GRAM_XI])
-        inc[:GRAM_PHI] *= h
-        np.multiply(phi_t, h, out=w.nrw_t)
-        np.take(w.nrw_t, STAT_LEFT, axis=0, out=left)
-        np.multiply(left, right, out=inc[GRAM_PHI])
-        short = self._statistics_t[_SHORT]
-        short *= mu_e
-        short += inc
-        residual = w.residual
-        np.einsum('npj,npj->np', self._rows, phi, out=residual)
-        np.subtract(y, residual, out=residual)
-        self.res2 *= mu_e2
-        np.square(residual, out=residual)
-        residual *= h
-        self.res2 += residual
-        self.weight_e *= mu_e
-        if waiting is None:
-            self.weight_e += h
-            self._steps += 1
-        else:
-            self.weight_e += h * waiting
-            self._steps += settled
+        mu_e = np.where(settled, self._mu_e, 1.0)
+        kernels.iv_short_window(
+            w.phi, w.xi, w.y, _flat(self._rows), STAT_LEFT, STAT_RIGHT, h, mu_e, weight,
+            self._statistics_t[_SHORT], self.res2, self.weight_e, self._steps, w.increments,
+        )  # fmt: skip
+        waiting = None if weight is w.ones else weight
         due = (self._steps % self._excitation_every == 1) | (self._excitation_every == 1)
         _for_due(self._update_excitation, due if waiting is None else due & settled)
         excited = w.excited  # (N, rows)
@@ -742,20 +676,9 @@ class IvIdentifier(Rows):
             excited &= active
         if waiting is not None:
             excited &= settled[:, None]
-
         # long-window normal equations, forgetting only while excited
-        mu = w.mu
-        mu.fill(1.0)
-        np.copyto(mu, self._mu, where=excited)
-        np.copyto(w.mu_t, mu.T)
-        np.take(w.mu_t, STAT_ROW, axis=0, out=w.scratch)
-        long = self._statistics_t[_LONG]
-        long *= w.scratch
-        long += inc[:GRAM_PHI]  # (xi phi^T h and xi xi^T h, as for CROSS_E and GRAM_XI)
-        self.rhs *= mu[..., None]
-        np.multiply(xi, h, out=w.nrw)
-        w.nrw *= y[..., None]
-        self.rhs += w.nrw
+        kernels.iv_long_window(w.xi, w.y, excited, self._mu, h, STAT_ROW, w.increments,
+                               self._statistics_t[_LONG], _flat(self.rhs))  # fmt: skip
         due = (self._steps % self._solve_every == 0) | (self._solve_every == 1)
         _for_due(self._solve, due if waiting is None else due & settled)
 
@@ -993,6 +916,14 @@ class IvIdentifier(Rows):
     @property
     def n_vehicles(self) -> int:
         return self.theta.shape[0]
+
+
+def _flat(a: np.ndarray) -> np.ndarray:
+    """``a`` (N, ...) as (N, -1), a view (an error if that would need a copy: the kernels
+    write into it)."""
+    out = a.view()
+    out.shape = (len(a), -1)
+    return out
 
 
 def _for_due(update, due: np.ndarray) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
+from functools import lru_cache
 
 import numpy as np
 
@@ -395,23 +396,79 @@ _MARKER_TAIL = struct.pack(
 )
 
 
-def _marker(w: _Writer, head: bytes, ns: str, marker_id: int, kind: int, position, scale: float,
-            rgba, lifetime: tuple[int, int], points: np.ndarray | None) -> None:  # fmt: skip
-    """One ``visualization_msgs/msg/Marker`` (action ADD, identity orientation) into ``w``;
-    ``head`` is its header's bytes (stamp and frame), written 4-aligned."""
+def _marker(w: _Writer, head: bytes, ns: str, marker_id: int, kind: int, scale: float, rgba,
+            lifetime: tuple[int, int], n_points: int) -> tuple[int, int, int]:  # fmt: skip
+    """One ``visualization_msgs/msg/Marker`` (action ADD, identity orientation, at the origin,
+    ``n_points`` points of zero) into ``w``; ``head`` is its header's bytes (stamp and frame),
+    written 4-aligned. Returns where its stamp, its pose and its points start in ``w``."""
     w.align(4)
+    stamp_at = len(w.buf)
     w.buf += head
     w.string(ns)
     w.pack(4, _MARKER_KIND, marker_id, kind, MARKER_ADD)
-    p = position
-    w.doubles((p[0], p[1], p[2], 0.0, 0.0, 0.0, 1.0, scale, scale, scale))  # pose, scale
+    w.align(8)
+    pose_at = len(w.buf)
+    w.doubles((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, scale, scale, scale))  # pose, scale
     w.pack(4, _COLOR_LIFETIME, *rgba, *lifetime, False)
-    n = 0 if points is None else len(points)
-    w.uint32(n)
-    if n:
-        w.doubles(points)
+    w.uint32(n_points)
+    if n_points:
+        w.align(8)
+    points_at = len(w.buf)
+    w.buf += bytes(24 * n_points)
     w.align(4)
     w.buf += _MARKER_TAIL
+    return stamp_at, pose_at, points_at
+
+
+class PredictionMarkersLayout:
+    """The bytes of the ``visualization_msgs/msg/MarkerArray`` of
+    :func:`encode_prediction_markers` for one frame, number of poses, lifetime and sphere
+    spacing, built once: encoding a prediction is then a copy, its stamp, positions and sphere
+    diameters written in place."""
+
+    def __init__(self, frame_id: str, n_poses: int, lifetime_ns: int, every: int) -> None:
+        head = _Writer()
+        head.stamp(0)
+        head.string(frame_id)
+        head = bytes(head.buf[4:])  # (4-aligned at its start, so it is the same bytes anywhere)
+        lifetime = divmod(int(lifetime_ns), NS)
+        self.spheres = np.arange(every - 1, n_poses, every)
+        w = _Writer()
+        w.uint32(1 + len(self.spheres))
+        stamp_at, _, points_at = _marker(w, head, 'prediction', 0, MARKER_LINE_STRIP, 0.02,
+                                         (0.1, 0.5, 1.0, 0.9), lifetime, n_poses)  # fmt: skip
+        stamps, doubles = [stamp_at], [points_at + 8 * np.arange(3 * n_poses)]
+        for i in range(1, len(self.spheres) + 1):
+            stamp_at, pose_at, _ = _marker(w, head, 'prediction_radius', i, MARKER_SPHERE, 0.0,
+                                           (0.1, 0.5, 1.0, 0.15), lifetime, 0)  # fmt: skip
+            stamps.append(stamp_at)
+            doubles += [pose_at + 8 * np.arange(3), pose_at + 8 * np.arange(7, 10)]
+        self._template = bytes(w.buf)
+        self._stamp_bytes = (np.array(stamps)[:, None] + np.arange(8)).ravel()
+        self._double_bytes = (np.concatenate(doubles)[:, None] + np.arange(8)).ravel()
+        self.n_poses = n_poses
+
+    def encode(self, stamp_ns: int, positions: np.ndarray, radii: np.ndarray) -> bytes:
+        positions = np.asarray(positions, dtype=float)
+        if positions.shape != (self.n_poses, 3):
+            msg = f'{self.n_poses} poses of 3 coordinates, got positions {positions.shape}'
+            raise ValueError(msg)
+        diameters = 2.0 * np.asarray(radii, dtype=float)[self.spheres]
+        spheres = np.concatenate([positions[self.spheres], np.repeat(diameters[:, None], 3, 1)],
+                                 axis=1)  # fmt: skip
+        values = np.concatenate([positions.ravel(), spheres.ravel()]).astype('<f8')
+        buf = bytearray(self._template)
+        view = np.frombuffer(buf, dtype=np.uint8)
+        view[self._stamp_bytes] = np.tile(np.frombuffer(_time_bytes(stamp_ns), np.uint8),
+                                          len(self.spheres) + 1)  # fmt: skip
+        view[self._double_bytes] = values.view(np.uint8)
+        return bytes(buf)
+
+
+@lru_cache(maxsize=64)
+def _markers_layout(frame_id: str, n_poses: int, lifetime_ns: int,
+                    every: int) -> PredictionMarkersLayout:  # fmt: skip
+    return PredictionMarkersLayout(frame_id, n_poses, lifetime_ns, every)
 
 
 def encode_prediction_markers(
@@ -421,18 +478,5 @@ def encode_prediction_markers(
     """CDR of the ``visualization_msgs/msg/MarkerArray`` of
     :func:`cloe_ros.io.messages.encode_prediction_markers`: a line strip of ``positions`` (K, 3)
     and a sphere of diameter ``2 radii[k]`` at every ``every``-th pose."""
-    head = _Writer()
-    head.stamp(stamp_ns)
-    head.string(frame_id)
-    head = bytes(head.buf[4:])  # (4-aligned at its start, so it is the same bytes anywhere)
-    lifetime = divmod(int(lifetime_ns), NS)
-    positions = np.asarray(positions, dtype=float)
-    spheres = range(every - 1, len(positions), every)
-    w = _Writer()
-    w.uint32(1 + len(spheres))
-    _marker(w, head, 'prediction', 0, MARKER_LINE_STRIP, (0.0, 0.0, 0.0), 0.02,
-            (0.1, 0.5, 1.0, 0.9), lifetime, positions)  # fmt: skip
-    for i, k in enumerate(spheres, start=1):
-        _marker(w, head, 'prediction_radius', i, MARKER_SPHERE, positions[k],
-                2.0 * float(radii[k]), (0.1, 0.5, 1.0, 0.15), lifetime, None)  # fmt: skip
-    return bytes(w.buf)
+    layout = _markers_layout(frame_id, len(positions), int(lifetime_ns), every)
+    return layout.encode(stamp_ns, positions, radii)

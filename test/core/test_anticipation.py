@@ -137,6 +137,10 @@ def test_each_horizons_weights_are_those_it_gets_alone():
     assert (together[:, 2] == 0).all()
 
 
+#: A truth of 0 at every time of the ensembles' tests: its times, values and channel.
+AT_REST = (np.array([-1.0, 100.0]), np.zeros((2, 1)), [0])
+
+
 def test_the_ensemble_learns_which_candidate_is_right_at_each_horizon():
     """Candidate A is exact up to 1 s and then off by 1 m; B is off by 0.3 m everywhere."""
     offsets = np.array([0.5, 1.0, 2.0, 5.0])
@@ -147,7 +151,7 @@ def test_the_ensemble_learns_which_candidate_is_right_at_each_horizon():
         a = np.where(offsets <= 1.0, 0.0, 1.0)[:, None] + 0.01 * rng.normal(size=(4, 1))
         b = np.full((4, 1), 0.3) * rng.choice([-1, 1], size=(4, 1))
         ens.add(t, np.stack([a, b]))
-        ens.score(t - 0.2, t, lambda times: np.zeros((len(times), 1)))
+        ens.score(t - 0.2, t, *AT_REST)
     w = ens.weights()
     assert w[0, 0] > 0.95 and w[1, 0] > 0.95  # A at 0.5 s and 1 s
     assert w[2, 1] > 0.85 and w[3, 1] > 0.85  # B at 2 s and 5 s
@@ -163,7 +167,7 @@ def test_unscored_horizons_take_the_growth_of_the_scored_ones():
         a = np.array([[0.1], [0.2], [0.4], [1.0]]) * (-1) ** i
         b = np.full((4, 1), 0.25) * (-1) ** (i + 1)
         ens.add(t, np.stack([a, b]))
-        ens.score(t - 0.2, t, lambda times: np.zeros((len(times), 1)))
+        ens.score(t - 0.2, t, *AT_REST)
     assert ens.scored[:2].all() and not ens.scored[2:].any()
     w = ens.weights()
     assert w[0, 0] > 0.5 and w[3, 1] > 0.8, w
@@ -175,15 +179,16 @@ def test_scores_of_one_horizon_due_together_are_weighed_in_in_order():
     offsets = np.array([0.2, 0.6, 1.0])
     rng = np.random.default_rng(4)
     paths = rng.normal(size=(12, 2, 3, 2))
-    truth = lambda times: np.column_stack([np.sin(times), np.cos(times)])  # noqa: E731
+    times = np.linspace(-1.0, 4.0, 5001)
+    truth = (times, np.column_stack([np.sin(times), np.cos(times)]), [0, 1])
     step, once = (Ensemble(('a', 'b'), offsets, 2, score_time=1.0, period=0.2, max_pending=40)
                   for _ in range(2))  # fmt: skip
     by_step = []
     for i, path in enumerate(paths):
         for ens in (step, once):
             ens.add(0.2 * i, path)
-        by_step.append(step.score(0.2 * i - 0.2, 0.2 * i, truth))
-    at_once = [once.score(-0.2, 0.2 * (len(paths) - 1), truth)]
+        by_step.append(step.score(0.2 * i - 0.2, 0.2 * i, *truth))
+    at_once = [once.score(-0.2, 0.2 * (len(paths) - 1), *truth)]
     np.testing.assert_allclose(once.cross, step.cross, rtol=1e-14, atol=0)
     assert once.scored.tolist() == step.scored.tolist() == [True] * 3
     # the same (prediction, horizon) scores, whichever call gave them
@@ -193,6 +198,48 @@ def test_scores_of_one_horizon_due_together_are_weighed_in_in_order():
                                                                       + 1e-9)) for i in range(12))
     np.testing.assert_allclose([s[2] for s in flat(at_once)], [s[2] for s in flat(by_step)],
                                rtol=1e-14)  # fmt: skip
+
+
+def test_scores_are_the_interpolated_errors_weighed_in_one_by_one():
+    """The ensemble's cross-products, written out: each due pose's error against the truth
+    interpolated as ``np.interp`` does, weighed in pose by pose (by slot, then horizon; the
+    first at a horizon with weight 1); poses beyond the truth's span or on a NaN truth are not
+    scored, and a prediction whose poses are all due is forgotten."""
+    rng = np.random.default_rng(11)
+    offsets = np.array([0.1, 0.3, 0.7])
+    ens = Ensemble(('a', 'b', 'c'), offsets, 2, score_time=0.8, period=0.2, max_pending=6)
+    times = np.sort(rng.uniform(0.0, 2.0, 300))
+    truth = rng.normal(size=(300, 3))
+    truth[150, 2] = np.nan  # a pose that needs this sample is not scored
+    paths = rng.normal(size=(9, 3, 3, 2))
+    for i, path in enumerate(paths):
+        ens.add(0.2 * i, path)
+    kept = [6, 7, 8, 3, 4, 5]  # the prediction in each of the 6 slots (the oldest dropped)
+    got = ens.score(0.25, 2.2, times, truth, [0, 2])
+    cross, scored, want = np.zeros((3, 3, 3)), np.zeros(3, dtype=bool), []
+    alpha = 1.0 - np.exp(-0.2 / 0.8)
+    for slot, i in enumerate(kept):  # by slot, then horizon
+        for k, when in enumerate(0.2 * i + offsets):
+            if not (0.25 + 1e-9 < when <= 2.2 + 1e-9) or when > times[-1] + 1e-9:
+                continue
+            actual = np.array([np.interp(when, times, truth[:, c]) for c in (0, 2)])
+            if not np.isfinite(actual).all():
+                continue
+            err = paths[i, :, k] - actual
+            weight = alpha if scored[k] else 1.0
+            cross[k] += weight * (err @ err.T - cross[k])
+            scored[k] = True
+            want.append((slot, 0.2 * i, k, (err**2).sum(axis=1)))
+    assert 10 < len(want) < 18  # (some poses beyond the truth, one on its NaN)
+    np.testing.assert_array_equal(got.slots, [w[0] for w in want])
+    np.testing.assert_array_equal(got.issued, [w[1] for w in want])
+    np.testing.assert_array_equal(got.horizons, [w[2] for w in want])
+    np.testing.assert_allclose(got.squared, [w[3] for w in want], rtol=1e-13)
+    np.testing.assert_allclose(ens.cross, cross, rtol=1e-12, atol=1e-15)
+    assert ens.scored.tolist() == scored.tolist()
+    # every prediction issued by 2.2 - 0.7 s has had all its poses due: forgotten
+    assert ens.score(2.2, 2.2, times, truth, [0, 2]).slots.size == 0
+    assert np.isnan(ens._pending_t).sum() == sum(0.2 * i + 0.7 <= 2.2 + 1e-9 for i in kept)
 
 
 @pytest.mark.parametrize('scale', [0.01, 1.0])
@@ -328,3 +375,18 @@ def test_a_request_that_fails_fails_only_its_own_steps():
                           failures=(ValueError,))  # fmt: skip
     assert values[0] == values[2] == 'fitted'
     assert isinstance(values[1], ValueError)
+
+
+def test_the_compiled_kernels_are_compiled_at_import_and_never_at_a_call():
+    """Every kernel has its one signature compiled when the module is imported, so no message
+    waits on a compile; a call with other types is refused rather than compiled."""
+    from cloe_ros.core import kernels
+
+    compiled = [k for k in vars(kernels).values() if hasattr(k, 'overloads')]
+    assert len(compiled) >= 3
+    for kernel in compiled:
+        assert len(kernel.overloads) == 1, kernel
+    with pytest.raises(TypeError):
+        kernels.interpolate(np.zeros(3, np.float32), np.zeros((3, 1)), np.zeros(2),
+                            np.zeros(1, np.intp), np.zeros((2, 1)))  # fmt: skip
+    assert all(len(k.overloads) == 1 for k in compiled)

@@ -546,7 +546,7 @@ def test_the_packed_statistics_are_the_full_outer_products_and_leave_out_only_ze
         ident.step(z[k][None], r[k][None])
         if not ident._t[0] >= ident._settle:
             continue
-        xi, phi = ident._work.xi, ident._work.phi
+        xi, phi = (a.reshape(1, 8, 6) for a in (ident._work.xi, ident._work.phi))
         outer = {'cross_e': xi[..., :, None] * phi[..., None, :],
                  'gram_xi': xi[..., :, None] * xi[..., None, :],
                  'gram_phi': phi[..., :, None] * phi[..., None, :]}  # fmt: skip

@@ -1,0 +1,301 @@
+"""Compiled kernels (numba) of the per-vehicle paths that numpy runs as many small calls.
+
+A prediction scores its past predictions and interpolates its history several times a step;
+in numpy each of these is a few dozen calls on arrays of a few dozen entries, so call overhead,
+not arithmetic, is their cost. Each kernel here does one of them in one call, with the same
+operations in the same order as the numpy code it replaces (the golden test holds the outputs
+to 1e-9; the kernels' own tests hold them equal to that code, bit for bit):
+
+* element-wise arithmetic is IEEE's in either (numba contracts nothing into fused multiply-adds
+  without ``fastmath``, which is off);
+* a sum over a short axis adds its terms from the first, as numpy's ``einsum`` inner loops do
+  for fewer terms than one SIMD block.
+
+The kernels compile when this module is imported (explicit signatures) and are cached on disk
+beside it (``cache=True``), so no message ever waits on a compile: the first import on a
+machine takes a few seconds, later ones load the machine code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_COMPILE = dict(cache=True, nogil=True, error_model='numpy')  # x / 0 gives inf or nan
+
+_F1 = 'float64[::1]'
+_F2 = 'float64[:, ::1]'
+_I1 = 'intp[::1]'
+
+
+@njit(f'intp({_F1}, float64)', **_COMPILE)
+def _count_not_after(t, x):
+    """How many of the increasing ``t`` are <= ``x``: ``np.searchsorted(t, x, 'right')``."""
+    low, high = 0, t.shape[0]
+    while low < high:
+        mid = (low + high) >> 1
+        if t[mid] <= x:
+            low = mid + 1
+        else:
+            high = mid
+    return low
+
+
+@njit(f'void({_F1}, float64[:, :], float64, {_I1}, float64[::1])', **_COMPILE)
+def _interp_into(t, data, x, channels, out):
+    """``data`` (T, C) sampled at ``t`` (T,), at ``x`` (in the span), for ``channels``, into
+    ``out``: the arithmetic of ``np.interp`` (a sample's own time, and the ends, give the
+    sample itself)."""
+    j = max(_count_not_after(t, x) - 1, 0)  # (before the first sample: the first)
+    if x < t[0] or j >= t.shape[0] - 1 or t[j] == x:
+        for c in range(channels.shape[0]):
+            out[c] = data[j, channels[c]]
+        return
+    dt = t[j + 1] - t[j]
+    for c in range(channels.shape[0]):
+        d0 = data[j, channels[c]]
+        out[c] = (data[j + 1, channels[c]] - d0) / dt * (x - t[j]) + d0
+
+
+@njit(f'void({_F1}, float64[:, :], {_F1}, {_I1}, {_F2})', **_COMPILE)
+def interpolate(t, data, times, channels, out):
+    """``out`` (M, C) = ``data`` (T, C) sampled at the increasing ``t`` (T,), interpolated at
+    ``times`` (M,) for ``channels`` (C,) as ``np.interp`` does; NaN outside the span (1e-9 s
+    of slack) and at NaN times."""
+    n = t.shape[0]
+    for i in range(times.shape[0]):
+        x = times[i]
+        if n < 1 or not (t[0] - 1e-9 <= x <= t[n - 1] + 1e-9):
+            out[i, :] = np.nan
+        else:
+            _interp_into(t, data, x, channels, out[i])
+
+
+@njit(
+    f'intp({_F1}, float64[:, :, :, ::1], {_F1}, float64, float64, {_F1}, float64[:, :], {_I1},'
+    f' float64[:, :, ::1], boolean[::1], float64, {_I1}, {_F1}, {_I1}, {_F2})',
+    **_COMPILE,
+)
+def score_ensemble(pending_t, pending, offsets, since, now, t, data, channels, cross, scored,
+                   alpha, slots, issued, horizons, squared):  # fmt: skip
+    """:meth:`~cloe_ros.core.anticipation.Ensemble.score` against a history column: scores the
+    poses of the pending predictions (issue times ``pending_t`` (P,), NaN for none; paths
+    ``pending`` (P, M, K, D)) whose times fall in ``(since, now]`` against ``data`` (T, ·)
+    sampled at ``t`` (T,) (``channels``, D of them), into the error cross-products ``cross``
+    (K, M, M) and ``scored`` (K,); forgets the predictions all of whose poses are due. Writes
+    each scored pose's slot, issue time, horizon and candidates' squared errors (M,) into the
+    outputs (P * K long) in the order of the numpy code (by slot, then horizon), and returns
+    how many there are."""
+    n_slots, m, k_max, d = pending.shape
+    actual = np.empty(d)
+    err = np.empty((m, d))
+    after, until = since + 1e-9, now + 1e-9
+    low, high = (t[0] - 1e-9, t[t.shape[0] - 1] + 1e-9) if t.shape[0] else (np.inf, -np.inf)
+    n = 0
+    for p in range(n_slots):
+        issue = pending_t[p]
+        if not np.isfinite(issue):
+            continue
+        for k in range(k_max):
+            time = issue + offsets[k]
+            if not (after < time <= until) or not (low <= time <= high):
+                continue
+            _interp_into(t, data, time, channels, actual)
+            if not np.all(np.isfinite(actual)):
+                continue
+            for i in range(m):
+                for c in range(d):
+                    err[i, c] = pending[p, i, k, c] - actual[c]
+            weight = alpha if scored[k] else 1.0
+            for i in range(m):
+                for j in range(m):
+                    s = 0.0
+                    for c in range(d):
+                        s += err[i, c] * err[j, c]
+                    cross[k, i, j] += weight * (s - cross[k, i, j])
+            scored[k] = True
+            slots[n], issued[n], horizons[n] = p, issue, k
+            for i in range(m):
+                s = 0.0
+                for c in range(d):
+                    s += err[i, c] * err[i, c]
+                squared[n, i] = s
+            n += 1
+        if issue + offsets[k_max - 1] <= until:  # every pose is due: done
+            pending_t[p] = np.nan
+    return n
+
+
+# --------------------------------------------------------------------- the IV identifier
+
+
+@njit(f'float64({_F1}, {_F1})', **_COMPILE)
+def einsum_dot(a, b):
+    """``np.einsum('j,j->', a, b)`` as numpy's x86-64 baseline (two-lane) loop adds it: two
+    lanes, the even and the odd terms; blocks of eight terms taken from their last pair; then
+    the lanes added."""
+    n = a.shape[0]
+    even = odd = 0.0
+    j = 0
+    while n - j >= 8:
+        for q in (6, 4, 2, 0):
+            even = a[j + q] * b[j + q] + even
+            odd = a[j + q + 1] * b[j + q + 1] + odd
+        j += 8
+    while j < n:
+        even = a[j] * b[j] + even
+        odd = (a[j + 1] * b[j + 1] if j + 1 < n else 0.0) + odd
+        j += 2
+    return even + odd
+
+
+_IV_FILTER = (
+    # inputs
+    f'void({_F2}, {_F2}, boolean[::1], float64[::1],'  # zeta, r, whole (all rows active), decay
+    # history
+    ' float64[:, :, ::1], float64[:, :, ::1], boolean[:, ::1], intp[::1], int64[::1],'
+    # auxiliary model: ad, bd, x, last r, shift
+    f' float64[:, :, ::1], float64[:, :, ::1], {_F2}, {_F2}, {_F2},'
+    # filter bank: state (N, C, 3), cf, df, cd, dd, ad^T, bd
+    f' float64[:, :, ::1], {_F1}, float64, {_F1}, float64, {_F2}, {_F1},'
+    # scales: state, reference
+    f' {_F1}, {_F1},'
+    # regressor and instrument gathers (channels (2, rows * W), coefficients), mask (rows * W),
+    # target gathers: F's (2, rows) channels and coefficients, sF's (rows,)
+    f' intp[:, ::1], {_F2}, intp[:, ::1], {_F2}, boolean[::1], intp[:, ::1], {_F2}, {_I1}, {_F1},'
+    # gate (N, rows), weight of the settled (N,), step h
+    f' {_F2}, {_F1}, float64,'
+    # out: f, d, phi, xi (N, rows * W), y (N, rows)
+    f' {_F2}, {_F2}, {_F2}, {_F2}, {_F2})'
+)
+
+
+@njit(_IV_FILTER, **_COMPILE)
+def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, hist_count,
+              aux_ad, aux_bd, x_aux, last_r, aux_shift, fx, cf, df, cd, dd, ad_t, bd,
+              state_scale, reference_scale, phi_c, phi_a, xi_c, xi_a, mask, yf_c, yf_a, yd_c,
+              yd_a, gate, weight, h, f, d, phi, xi, y):  # fmt: skip
+    """The per-vehicle part of :meth:`~cloe_ros.core.identifier.IvIdentifier.step` up to its
+    statistics, with that method's operations in its order: the history, the auxiliary model,
+    the filter bank (its state advanced in place), and each vehicle's filtered channels ``f``,
+    ``d``, regressors ``phi``, instruments ``xi`` and targets ``y``, gated by ``gate`` and
+    ``weight`` (1 where the numpy code does not multiply: a product by 1 is exact)."""
+    n_vehicles, n_states = zeta.shape
+    n_channels = fx.shape[1]
+    u = np.empty(n_channels)
+    x_new = np.empty(n_states)
+    fx_new = np.empty((n_channels, 3))
+    width = phi.shape[1] // y.shape[1]
+    for n in range(n_vehicles):
+        k = hist_next[n]
+        hist_z[n, k] = zeta[n]
+        hist_r[n, k] = r[n]
+        hist_active[n, k] = whole[n]
+        hist_next[n] = (k + 1) % hist_z.shape[1]
+        hist_count[n] += 1
+        # auxiliary model, driven by the reference only
+        for i in range(n_states):
+            x_new[i] = einsum_dot(aux_ad[n, i], x_aux[n]) + einsum_dot(aux_bd[n, i], r[n])
+        x_aux[n] = x_new
+        last_r[n] = r[n]
+        # channels: the measured state, the reference, the auxiliary model's state, zero
+        for i in range(n_states):
+            u[i] = zeta[n, i] / state_scale[i]
+            u[n_states + 4 + i] = (x_aux[n, i] - aux_shift[n, i]) / state_scale[i]
+        for i in range(4):
+            u[n_states + i] = r[n, i] / reference_scale[i]
+        u[n_channels - 1] = 0.0
+        # the filter bank: F{u}, sF{u} and the next state (matmul's order: term by term)
+        for c in range(n_channels):
+            s = 0.0
+            s += fx[n, c, 0] * cf[0]
+            s += fx[n, c, 1] * cf[1]
+            s += fx[n, c, 2] * cf[2]
+            f[n, c] = s + df * u[c]
+            s = 0.0
+            s += fx[n, c, 0] * cd[0]
+            s += fx[n, c, 1] * cd[1]
+            s += fx[n, c, 2] * cd[2]
+            d[n, c] = s + dd * u[c]
+            for q in range(3):
+                s = 0.0
+                s += fx[n, c, 0] * ad_t[0, q]
+                s += fx[n, c, 1] * ad_t[1, q]
+                s += fx[n, c, 2] * ad_t[2, q]
+                fx_new[c, q] = s + u[c] * bd[q]
+        fx[n] = fx_new
+        f[n, n_channels] = decay[n]
+        # regressors, instruments, targets
+        for j in range(phi.shape[1]):
+            on, g = (1.0 if mask[j] else 0.0), gate[n, j // width]
+            phi[n, j] = (f[n, phi_c[0, j]] * phi_a[0, j] + f[n, phi_c[1, j]] * phi_a[1, j]) * on
+            phi[n, j] = phi[n, j] * g * weight[n]
+            xi[n, j] = (f[n, xi_c[0, j]] * xi_a[0, j] + f[n, xi_c[1, j]] * xi_a[1, j]) * on
+            xi[n, j] = xi[n, j] * g * weight[n]
+        for p in range(y.shape[1]):
+            y[n, p] = (f[n, yf_c[0, p]] * yf_a[0, p] + f[n, yf_c[1, p]] * yf_a[1, p]
+                       + d[n, yd_c[p]] * yd_a[p]) * gate[n, p] * weight[n]  # fmt: skip
+
+
+_IV_SHORT = (
+    # phi, xi (N, rows * W), y (N, rows), the last solution (N, rows * W), the entries' left
+    # and right factors (packed), h, mu_e (N,), the settled weight (N,)
+    f'void({_F2}, {_F2}, {_F2}, {_F2}, {_I1}, {_I1}, float64, {_F1}, {_F1},'
+    # in/out: the short statistics (3, packed, N), residual power (N, rows), weight_e (N,),
+    # steps (N,); out: the increments (3, packed, N)
+    f' float64[:, :, ::1], {_F2}, {_F1}, int64[::1], float64[:, :, ::1])'
+)
+
+
+@njit(_IV_SHORT, **_COMPILE)
+def iv_short_window(phi, xi, y, rows, left, right, h, mu_e, weight, short, res2, weight_e,
+                    steps, increments):  # fmt: skip
+    """The short-window statistics of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`,
+    in its order: the packed outer products ``xi phi^T h``, ``xi xi^T h`` and ``(phi h)
+    phi^T`` into ``increments``, forgotten by ``mu_e`` and added; the residual power; the
+    weight's integral and the steps (of the settled: ``weight`` 1 or 0)."""
+    n_vehicles = phi.shape[0]
+    for q in range(left.shape[0]):
+        a, b = left[q], right[q]
+        for n in range(n_vehicles):
+            increments[0, q, n] = xi[n, a] * phi[n, b] * h
+            increments[1, q, n] = xi[n, a] * xi[n, b] * h
+            increments[2, q, n] = phi[n, a] * h * phi[n, b]
+            for s in range(3):
+                short[s, q, n] = short[s, q, n] * mu_e[n] + increments[s, q, n]
+    n_rows = y.shape[1]
+    width = phi.shape[1] // n_rows
+    for n in range(n_vehicles):
+        for p in range(n_rows):
+            e = y[n, p] - einsum_dot(rows[n, p * width:(p + 1) * width],
+                                     phi[n, p * width:(p + 1) * width])  # fmt: skip
+            res2[n, p] = res2[n, p] * mu_e[n] + e * e * h
+        weight_e[n] = weight_e[n] * mu_e[n] + h * weight[n]
+        steps[n] += 1 if weight[n] else 0
+
+
+_IV_LONG = (
+    # xi (N, rows * W), y (N, rows), excited (N, rows), mu, h, entries' rows (packed),
+    # increments (3, packed, N); in/out: the long statistics (2, packed, N), rhs (N, rows * W)
+    f'void({_F2}, {_F2}, boolean[:, ::1], float64, float64, {_I1}, float64[:, :, ::1],'
+    f' float64[:, :, ::1], {_F2})'
+)
+
+
+@njit(_IV_LONG, **_COMPILE)
+def iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs):
+    """The long-window normal equations of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`
+    in its order: forgotten by ``mu`` only where the row is excited, ``xi phi^T h`` and ``xi
+    xi^T h`` added, and ``b += xi h y``."""
+    n_vehicles, n_rows = y.shape
+    width = xi.shape[1] // n_rows
+    for q in range(entry_row.shape[0]):
+        p = entry_row[q]
+        for n in range(n_vehicles):
+            m = mu if excited[n, p] else 1.0
+            for s in range(2):
+                long[s, q, n] = long[s, q, n] * m + increments[s, q, n]
+    for n in range(n_vehicles):
+        for j in range(xi.shape[1]):
+            m = mu if excited[n, j // width] else 1.0
+            rhs[n, j] = rhs[n, j] * m + xi[n, j] * h * y[n, j // width]

@@ -56,6 +56,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from cloe_ros.core import kernels
 from cloe_ros.core.algorithms import make_estimator
 from cloe_ros.core.anticipation import (
     POSITION,
@@ -72,7 +73,6 @@ from cloe_ros.core.kinematics import (
     odometry_to_state_one,
     quaternion_yaw,
     quaternion_yaw_one,
-    roll_pitch_one,
     unwrap_near,
     unwrap_near_one,
 )
@@ -348,6 +348,7 @@ class VehicleEngine:
         )
         self._held_odom: OdometrySample | None = None  # a jump in time, until the next one
         self._held_kind = ''  # why it is held: 'time jump', 'gap' or 'position jump'
+        self._checked: tuple = (None, None)  # the latest sample found usable, and its state
         self._interval_ns: float | None = None  # typical odometry interval
         # the latest odometry gaps, for the stream's interval (_count_missing)
         self._gaps: deque[int] = deque(maxlen=MISSING_WINDOW)
@@ -434,27 +435,28 @@ class VehicleEngine:
         return max(stamps) if stamps else None
 
     def _odometry_problem(self, sample: OdometrySample) -> tuple[str, str] | None:
-        """(reason, detail) if the sample's values or frame are unusable."""
-        # (13 numbers: Python's float math is cheaper than numpy's calls on them)
-        p, q, v, w = (a.tolist() for a in (sample.position, sample.orientation, sample.linear,
-                                           sample.angular))  # fmt: skip
-        if not all(map(math.isfinite, (*p, *q, *v, *w))):
-            fields = zip(('position', 'orientation', 'linear', 'angular'), (p, q, v, w))
-            bad = ', '.join(n for n, a in fields if not all(map(math.isfinite, a)))
+        """(reason, detail) if the sample's values or frame are unusable; else None, its state
+        computed (:meth:`_accept_odometry` takes it), in one compiled call
+        (:func:`~cloe_ros.core.kernels.odometry_state`)."""
+        fields = (sample.position, sample.orientation, sample.linear, sample.angular)
+        arrays = [np.asarray(a, dtype=float) for a in fields]
+        zeta, detail = np.empty(12), np.empty(2)
+        verdict = kernels.odometry_state(*arrays, self.config.quaternion_tolerance, MAX_POSITION,
+                                         MAX_SPEED, MAX_RATE, MAX_TILT, zeta, detail)  # fmt: skip
+        if verdict == kernels.NON_FINITE:
+            fields = zip(('position', 'orientation', 'linear', 'angular'), arrays)
+            bad = ', '.join(n for n, a in fields if not np.isfinite(a).all())
             return 'non-finite odometry', f'in {bad}'
-        norm = math.sqrt(float(sample.orientation @ sample.orientation))  # (as a reference's)
-        if abs(norm - 1.0) > self.config.quaternion_tolerance:
-            return 'invalid quaternion', f'norm {norm:.6g}'
-        for name, values, bound, unit in (
-            ('position', p, MAX_POSITION, 'm'),
-            ('velocity', v, MAX_SPEED, 'm/s'),
-            ('angular rate', w, MAX_RATE, 'rad/s'),
-        ):
-            largest = max(map(abs, values))
-            if largest > bound:
-                return f'{name} beyond {bound:g} {unit}', f'{largest:.6g} {unit}'
-        roll, pitch = roll_pitch_one(q)
-        if max(abs(roll), abs(pitch)) > MAX_TILT:
+        if verdict == kernels.BAD_QUATERNION:
+            return 'invalid quaternion', f'norm {detail[0]:.6g}'
+        bounds = {kernels.BAD_POSITION: ('position', MAX_POSITION, 'm'),
+                  kernels.BAD_VELOCITY: ('velocity', MAX_SPEED, 'm/s'),
+                  kernels.BAD_RATE: ('angular rate', MAX_RATE, 'rad/s')}  # fmt: skip
+        if verdict in bounds:
+            name, bound, unit = bounds[verdict]
+            return f'{name} beyond {bound:g} {unit}', f'{detail[0]:.6g} {unit}'
+        if verdict == kernels.BAD_TILT:
+            roll, pitch = detail.tolist()
             return (
                 f'tilt beyond {math.degrees(MAX_TILT):g} deg, outside the model',
                 f'roll {math.degrees(roll):.1f} deg, pitch {math.degrees(pitch):.1f} deg',
@@ -462,6 +464,7 @@ class VehicleEngine:
         wrong = self._check_frame(sample.frame_id)
         if wrong:
             return 'wrong frame', wrong
+        self._checked = (sample, zeta)
         return None
 
     def add_odometry(self, sample: OdometrySample) -> Rejection | None:
@@ -573,9 +576,11 @@ class VehicleEngine:
         self._reject(reason, f'{seconds(stamp_ns)}{where}; {why}')
 
     def _accept_odometry(self, sample: OdometrySample) -> None:
-        zeta = odometry_to_state_one(
-            sample.position, sample.orientation, sample.linear, sample.angular
-        )
+        checked, zeta = self._checked
+        if checked is not sample:  # (a sample held aside, checked before the latest)
+            zeta = odometry_to_state_one(
+                sample.position, sample.orientation, sample.linear, sample.angular
+            )
         if self._yaw is not None:
             zeta[8] = unwrap_near_one(float(zeta[8]), self._yaw)
         self._yaw = float(zeta[8])

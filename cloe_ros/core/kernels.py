@@ -19,7 +19,7 @@ machine takes a few seconds, later ones load the machine code.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 
 _COMPILE = dict(cache=True, nogil=True, error_model='numpy')  # x / 0 gives inf or nan
 
@@ -299,3 +299,68 @@ def iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs):
         for j in range(xi.shape[1]):
             m = mu if excited[n, j // width] else 1.0
             rhs[n, j] = rhs[n, j] * m + xi[n, j] * h * y[n, j // width]
+
+
+# ------------------------------------------------------------------------------ odometry
+
+_RO = types.Array(types.float64, 1, 'A', readonly=True)
+
+#: :func:`odometry_state`'s verdicts.
+ODOMETRY_OK, NON_FINITE, BAD_QUATERNION, BAD_POSITION, BAD_VELOCITY, BAD_RATE, BAD_TILT = range(7)
+
+
+@njit(types.intp(_RO, _RO, _RO, _RO, types.float64, types.float64, types.float64,
+                 types.float64, types.float64, types.float64[::1], types.float64[::1]),
+      **_COMPILE)  # fmt: skip
+def odometry_state(position, orientation, linear, angular, quaternion_tolerance, max_position,
+                   max_speed, max_rate, max_tilt, zeta, detail):  # fmt: skip
+    """The checks of an odometry sample, in order, and its state: returns the first problem
+    (``NON_FINITE``: a value is not finite; ``BAD_QUATERNION``: ``| ||q|| - 1 |`` beyond the
+    tolerance, ``detail[0]`` the norm; ``BAD_POSITION`` / ``BAD_VELOCITY`` / ``BAD_RATE``: a
+    component beyond its bound, ``detail[0]`` the largest; ``BAD_TILT``: roll or pitch beyond
+    ``max_tilt``, ``detail[:2]`` roll and pitch) or ``ODOMETRY_OK`` with ``zeta`` (12,) the
+    state: the arithmetic of :func:`~cloe_ros.core.kinematics.odometry_to_state_one`."""
+    for values in (position, orientation, linear, angular):
+        for c in range(values.shape[0]):
+            if not np.isfinite(values[c]):
+                return NON_FINITE
+    x, y, z, w = orientation[0], orientation[1], orientation[2], orientation[3]
+    norm = np.sqrt(x * x + y * y + z * z + w * w)
+    if abs(norm - 1.0) > quaternion_tolerance:
+        detail[0] = norm
+        return BAD_QUATERNION
+    for values, bound, verdict in ((position, max_position, BAD_POSITION),
+                                   (linear, max_speed, BAD_VELOCITY),
+                                   (angular, max_rate, BAD_RATE)):  # fmt: skip
+        largest = 0.0
+        for c in range(values.shape[0]):
+            largest = max(largest, abs(values[c]))
+        if largest > bound:
+            detail[0] = largest
+            return verdict
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    roll = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = np.arcsin(min(1.0, max(-1.0, 2.0 * (w * y - z * x))))
+    yaw = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    if max(abs(roll), abs(pitch)) > max_tilt:
+        detail[0], detail[1] = roll, pitch
+        return BAD_TILT
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    u, v, wv = linear[0], linear[1], linear[2]
+    p, q, r = angular[0], angular[1], angular[2]
+    s = q * sr + r * cr
+    zeta[0] = position[0]
+    zeta[1] = cy * cp * u + (cy * sp * sr - sy * cr) * v + (cy * sp * cr + sy * sr) * wv
+    zeta[2] = pitch
+    zeta[3] = q * cr - r * sr
+    zeta[4] = position[1]
+    zeta[5] = sy * cp * u + (sy * sp * sr + cy * cr) * v + (sy * sp * cr - cy * sr) * wv
+    zeta[6] = roll
+    zeta[7] = p + s * np.tan(pitch)
+    zeta[8] = yaw
+    zeta[9] = s / cp
+    zeta[10] = position[2]
+    zeta[11] = -sp * u + cp * sr * v + cp * cr * wv
+    return ODOMETRY_OK

@@ -205,23 +205,19 @@ def roll_pitch_one(quaternion: np.ndarray) -> tuple[float, float]:
 def odometry_to_state_one(
     position: np.ndarray, quaternion: np.ndarray, v_body: np.ndarray, w_body: np.ndarray
 ) -> np.ndarray:
-    """:func:`odometry_to_state` for one sample, with scalar math (the node's hot path: about ten
-    times faster than the array version on a single sample)."""
-    roll, pitch, yaw = quaternion_to_euler_one(_unit_one(quaternion))
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    u, v, wv = _floats(v_body)
-    vx = cy * cp * u + (cy * sp * sr - sy * cr) * v + (cy * sp * cr + sy * sr) * wv
-    vy = sy * cp * u + (sy * sp * sr + cy * cr) * v + (sy * sp * cr - cy * sr) * wv
-    vz = -sp * u + cp * sr * v + cp * cr * wv
-    p, q, r = _floats(w_body)
-    s = q * sr + r * cr
-    return np.array([
-        position[0], vx, pitch, q * cr - r * sr,
-        position[1], vy, roll, p + s * math.tan(pitch),
-        yaw, s / cp, position[2], vz,
-    ], dtype=float)  # fmt: skip
+    """:func:`odometry_to_state` for one sample, in one compiled call (the node's hot path, about
+    fifty times faster than the array version on a single sample): the quaternion normalised,
+    ZYX Euler angles, the body velocity rotated into the world, the body rates turned into Euler
+    rates (:func:`~cloe_ros.core.kernels.odometry_state`, its checks all passed); NaN where a
+    value is not finite."""
+    from cloe_ros.core import kernels  # (numba: imported by the paths that convert samples)
+
+    zeta = np.empty(12)
+    arrays = (np.asarray(a, dtype=float) for a in (position, quaternion, v_body, w_body))
+    inf = math.inf
+    if kernels.odometry_state(*arrays, inf, inf, inf, inf, inf, zeta, np.empty(2)):
+        zeta[:] = np.nan
+    return zeta
 
 
 def state_to_odometry_one(

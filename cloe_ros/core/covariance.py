@@ -296,44 +296,11 @@ def _odometry_covariance_one(zeta: np.ndarray, variance: np.ndarray) -> tuple[np
 def odometry_covariance_floats(zeta, variance) -> tuple[list[float], list[float]]:
     """:func:`odometry_covariance` of one state (12,) as two row-major lists of 36 floats, by
     scalar arithmetic (each ``cloe/state`` message is one): ``R^T diag R`` and ``T diag T^T``
-    written out, each symmetric pair computed once."""
-    roll, pitch, yaw = float(zeta[6]), float(zeta[2]), float(zeta[8])
-    (p_x, v_x, p_pitch, r_pitch, p_y, v_y, p_roll, r_roll, p_yaw, r_yaw, p_z,
-     v_z) = variance.tolist()  # fmt: skip
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    # R (world from body, ZYX), its rows j weighed by the world-velocity variances v_j
-    r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-    r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
-    r20, r21, r22 = -sp, cp * sr, cp * cr
-    w00, w01, w02 = r00 * v_x, r01 * v_x, r02 * v_x
-    w10, w11, w12 = r10 * v_y, r11 * v_y, r12 * v_y
-    w20, w21, w22 = r20 * v_z, r21 * v_z, r22 * v_z
-    l00 = w00 * r00 + w10 * r10 + w20 * r20
-    l01 = w00 * r01 + w10 * r11 + w20 * r21
-    l02 = w00 * r02 + w10 * r12 + w20 * r22
-    l11 = w01 * r01 + w11 * r11 + w21 * r21
-    l12 = w01 * r02 + w11 * r12 + w21 * r22
-    l22 = w02 * r02 + w12 * r12 + w22 * r22
-    # T (body rates from Euler rates: rows (1, 0, -sp), (0, cr, cp sr), (0, -sr, cp cr)), its
-    # columns weighed by the roll, pitch and yaw rate variances
-    t12, t22 = cp * sr, cp * cr
-    a00 = r_roll + sp * r_yaw * sp
-    a01 = -sp * r_yaw * t12
-    a02 = -sp * r_yaw * t22
-    a11 = cr * r_pitch * cr + t12 * r_yaw * t12
-    a12 = -cr * r_pitch * sr + t12 * r_yaw * t22
-    a22 = sr * r_pitch * sr + t22 * r_yaw * t22
-    pose = [0.0] * 36
-    pose[0], pose[7], pose[14], pose[21], pose[28], pose[35] = (
-        p_x, p_y, p_z, p_roll, p_pitch, p_yaw)  # fmt: skip
-    twist = [
-        l00, l01, l02, 0.0, 0.0, 0.0,
-        l01, l11, l12, 0.0, 0.0, 0.0,
-        l02, l12, l22, 0.0, 0.0, 0.0,
-        0.0, 0.0, 0.0, a00, a01, a02,
-        0.0, 0.0, 0.0, a01, a11, a12,
-        0.0, 0.0, 0.0, a02, a12, a22,
-    ]  # fmt: skip
-    return pose, twist
+    written out, each symmetric pair computed once
+    (:func:`~cloe_ros.core.kernels.state_message`)."""
+    from cloe_ros.core import kernels  # (numba: imported by the paths that write states)
+
+    out = np.empty(85)
+    kernels.state_message(np.asarray(zeta, dtype=float), np.asarray(variance, dtype=float),
+                          True, out)  # fmt: skip
+    return out[7:43].tolist(), out[49:85].tolist()

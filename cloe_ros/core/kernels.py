@@ -364,3 +364,69 @@ def odometry_state(position, orientation, linear, angular, quaternion_tolerance,
     zeta[10] = position[2]
     zeta[11] = -sp * u + cp * sr * v + cp * cr * wv
     return ODOMETRY_OK
+
+
+@njit(types.void(_RO, _RO, types.boolean, types.float64[::1]), **_COMPILE)
+def state_message(zeta, variance, with_variance, out):
+    """The 85 doubles of ``cloe/state`` (an Odometry, in field order: position, orientation,
+    pose covariance, body velocity, body rates, twist covariance) of the state ``zeta`` (12,)
+    and, ``with_variance``, its error ``variance`` (12,) (zeros without): the arithmetic of
+    :func:`~cloe_ros.core.kinematics.state_to_odometry_floats` and
+    :func:`~cloe_ros.core.covariance.odometry_covariance_floats`."""
+    x, vx, pitch, dpitch, y, vy, roll, droll, yaw, dyaw, z, vz = (
+        zeta[0], zeta[1], zeta[2], zeta[3], zeta[4], zeta[5], zeta[6], zeta[7], zeta[8],
+        zeta[9], zeta[10], zeta[11])  # fmt: skip
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    hr, hp, hy = 0.5 * roll, 0.5 * pitch, 0.5 * yaw
+    chr_, shr = np.cos(hr), np.sin(hr)
+    chp, shp = np.cos(hp), np.sin(hp)
+    chy, shy = np.cos(hy), np.sin(hy)
+    out[:] = 0.0
+    out[0], out[1], out[2] = x, y, z
+    out[3] = shr * chp * chy - chr_ * shp * shy
+    out[4] = chr_ * shp * chy + shr * chp * shy
+    out[5] = chr_ * chp * shy - shr * shp * chy
+    out[6] = chr_ * chp * chy + shr * shp * shy
+    # body velocity = R^T v_world, body rates from the Euler rates
+    out[43] = cy * cp * vx + sy * cp * vy - sp * vz
+    out[44] = (cy * sp * sr - sy * cr) * vx + (sy * sp * sr + cy * cr) * vy + cp * sr * vz
+    out[45] = (cy * sp * cr + sy * sr) * vx + (sy * sp * cr - cy * sr) * vy + cp * cr * vz
+    out[46] = droll - dyaw * sp
+    out[47] = dpitch * cr + dyaw * cp * sr
+    out[48] = -dpitch * sr + dyaw * cp * cr
+    if not with_variance:
+        return
+    p_x, v_x, p_pitch, r_pitch, p_y, v_y, p_roll, r_roll, p_yaw, r_yaw, p_z, v_z = (
+        variance[0], variance[1], variance[2], variance[3], variance[4], variance[5],
+        variance[6], variance[7], variance[8], variance[9], variance[10], variance[11])  # fmt: skip
+    # R (world from body, ZYX), its rows j weighed by the world-velocity variances v_j
+    r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    r20, r21, r22 = -sp, cp * sr, cp * cr
+    w00, w01, w02 = r00 * v_x, r01 * v_x, r02 * v_x
+    w10, w11, w12 = r10 * v_y, r11 * v_y, r12 * v_y
+    w20, w21, w22 = r20 * v_z, r21 * v_z, r22 * v_z
+    l00 = w00 * r00 + w10 * r10 + w20 * r20
+    l01 = w00 * r01 + w10 * r11 + w20 * r21
+    l02 = w00 * r02 + w10 * r12 + w20 * r22
+    l11 = w01 * r01 + w11 * r11 + w21 * r21
+    l12 = w01 * r02 + w11 * r12 + w21 * r22
+    l22 = w02 * r02 + w12 * r12 + w22 * r22
+    # T (body rates from Euler rates), its columns weighed by the Euler-rate variances
+    t12, t22 = cp * sr, cp * cr
+    a00 = r_roll + sp * r_yaw * sp
+    a01 = -sp * r_yaw * t12
+    a02 = -sp * r_yaw * t22
+    a11 = cr * r_pitch * cr + t12 * r_yaw * t12
+    a12 = -cr * r_pitch * sr + t12 * r_yaw * t22
+    a22 = sr * r_pitch * sr + t22 * r_yaw * t22
+    pose = out[7:43]
+    pose[0], pose[7], pose[14], pose[21], pose[28], pose[35] = (
+        p_x, p_y, p_z, p_roll, p_pitch, p_yaw)  # fmt: skip
+    twist = out[49:85]
+    twist[0], twist[1], twist[2], twist[6], twist[7], twist[8] = l00, l01, l02, l01, l11, l12
+    twist[12], twist[13], twist[14] = l02, l12, l22
+    twist[21], twist[22], twist[23], twist[27], twist[28], twist[29] = a00, a01, a02, a01, a11, a12
+    twist[33], twist[34], twist[35] = a02, a12, a22

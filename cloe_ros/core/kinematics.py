@@ -230,24 +230,10 @@ def state_to_odometry_one(
 
 def state_to_odometry_floats(zeta) -> tuple[float, ...]:
     """:func:`state_to_odometry_one` as 13 floats: position (3), quaternion (x, y, z, w), body
-    velocity (3), body rates (3), the order of an Odometry message's fields."""
-    x, vx, pitch, dpitch, y, vy, roll, droll, yaw, dyaw, z, vz = _floats(zeta)
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    hr, hp, hy = 0.5 * roll, 0.5 * pitch, 0.5 * yaw
-    chr_, shr = math.cos(hr), math.sin(hr)
-    chp, shp = math.cos(hp), math.sin(hp)
-    chy, shy = math.cos(hy), math.sin(hy)
-    return (
-        x, y, z,
-        shr * chp * chy - chr_ * shp * shy,
-        chr_ * shp * chy + shr * chp * shy,
-        chr_ * chp * shy - shr * shp * chy,
-        chr_ * chp * chy + shr * shp * shy,
-        # body velocity = R^T v_world
-        cy * cp * vx + sy * cp * vy - sp * vz,
-        (cy * sp * sr - sy * cr) * vx + (sy * sp * sr + cy * cr) * vy + cp * sr * vz,
-        (cy * sp * cr + sy * sr) * vx + (sy * sp * cr - cy * sr) * vy + cp * cr * vz,
-        droll - dyaw * sp, dpitch * cr + dyaw * cp * sr, -dpitch * sr + dyaw * cp * cr,
-    )  # fmt: skip
+    velocity (3), body rates (3), the order of an Odometry message's fields (by scalar
+    arithmetic, :func:`~cloe_ros.core.kernels.state_message`)."""
+    from cloe_ros.core import kernels  # (numba: imported by the paths that write states)
+
+    out = np.empty(85)
+    kernels.state_message(np.asarray(zeta, dtype=float), out[:12], False, out)
+    return (*out[:7].tolist(), *out[43:49].tolist())

@@ -243,18 +243,27 @@ def encode_odometry(sample: OdometrySample) -> bytes:
     return bytes(w.buf)
 
 
-_ODOMETRY_VALUES = struct.Struct('<85d')
-
-
-def encode_odometry_floats(stamp_ns: int, frame_id: str, child_frame_id: str, values) -> bytes:
-    """:func:`encode_odometry` from the message's 85 doubles in field order (position,
-    orientation, pose covariance, linear, angular, twist covariance), floats already."""
+@lru_cache(maxsize=256)
+def _odometry_frames(frame_id: str, child_frame_id: str) -> bytes:
+    """The bytes of an Odometry between its stamp and its 85 doubles: the two frames, padded."""
     w = _Writer()
-    w.stamp(stamp_ns)
+    w.stamp(0)
     w.string(frame_id)
     w.string(child_frame_id)
-    w.pack(8, _ODOMETRY_VALUES, *values)
-    return bytes(w.buf)
+    w.align(8)
+    return bytes(w.buf[12:])
+
+
+def encode_odometry_values(stamp_ns: int, frame_id: str, child_frame_id: str,
+                           values: np.ndarray) -> bytes:  # fmt: skip
+    """:func:`encode_odometry` from the message's 85 doubles (85,) in field order (position,
+    orientation, pose covariance, linear, angular, twist covariance)."""
+    values = np.ascontiguousarray(values, dtype='<f8')
+    if values.shape != (85,):
+        msg = f'an Odometry carries 85 doubles, got {values.shape}'
+        raise ValueError(msg)
+    return (LITTLE + _time_bytes(stamp_ns) + _odometry_frames(frame_id, child_frame_id)
+            + values.tobytes())  # fmt: skip
 
 
 def encode_pose_stamped(sample: PoseSample) -> bytes:

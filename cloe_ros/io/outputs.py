@@ -18,14 +18,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from cloe_ros.core.anticipation import CHANNELS
-from cloe_ros.core.covariance import odometry_covariance_floats
 from cloe_ros.core.engine import NS, Estimate
 from cloe_ros.core.identifier import ROW_NAMES
-from cloe_ros.core.kinematics import euler_to_quaternion, state_to_odometry_floats
+from cloe_ros.core import kernels
+from cloe_ros.core.kinematics import euler_to_quaternion
 from cloe_ros.core.model import COUPLED_BLOCKS, PARAMETER_NAMES, STATE_NAMES
 from cloe_ros.core.samples import PathSample
 from cloe_ros.errors import ConfigError
-from cloe_ros.io.cdr import encode_odometry_floats
+from cloe_ros.io.cdr import encode_odometry_values
 from cloe_ros.io.errors import OutputConfigError
 from cloe_ros.io.messages import (
     FLOAT64_MULTI_ARRAY,
@@ -193,17 +193,14 @@ class OutputEncoder:
 def encode_state(estimate: Estimate, world_frame: str, child_frame: str) -> bytes:
     """``cloe/state``: the estimated state as Odometry (pose in world, twist in body, REP-105),
     with the estimate's error covariances (6x6 row-major each,
-    :func:`~cloe_ros.core.covariance.odometry_covariance`; zeros without ``error_variance``)."""
-    v = state_to_odometry_floats(estimate.zeta_hat)
-    if estimate.error_variance is None:
-        pose = twist = _ZEROS36
-    else:
-        pose, twist = odometry_covariance_floats(estimate.zeta_hat, estimate.error_variance)
-    return encode_odometry_floats(estimate.stamp_ns, world_frame, child_frame,
-                                  (*v[:7], *pose, *v[7:], *twist))  # fmt: skip
-
-
-_ZEROS36 = (0.0,) * 36
+    :func:`~cloe_ros.core.covariance.odometry_covariance`; zeros without ``error_variance``),
+    its 85 doubles computed in one compiled call (:func:`~cloe_ros.core.kernels.state_message`)."""
+    values = np.empty(85)
+    zeta = np.asarray(estimate.zeta_hat, dtype=float)
+    variance = estimate.error_variance
+    kernels.state_message(zeta, zeta if variance is None else np.asarray(variance, dtype=float),
+                          variance is not None, values)  # fmt: skip
+    return encode_odometry_values(estimate.stamp_ns, world_frame, child_frame, values)
 
 
 #: ``excitation.*`` / ``uncertainty.*`` when there is no finite value: not measured (the paper's

@@ -48,8 +48,13 @@ $(VENV)/.deps: requirements.txt | $(BIN)/python
 	$(BIN)/pip install $(ROS_WHEELS) -r requirements.txt
 	touch $@
 
+# (then the compiled kernels, cloe_ros/core/kernels.py, are compiled into numba's cache once, for
+# the installed package and for the work tree the tests import, so that no node or test process
+# started later waits on a compile)
 $(VENV)/.installed: $(VENV)/.deps $(SOURCES)
 	$(BIN)/pip install .
+	cd / && $(abspath $(BIN))/python -c 'import cloe_ros.core.kernels'
+	$(BIN)/python -c 'import cloe_ros.core.kernels'
 	touch $@
 
 lint: $(VENV)/.installed

@@ -109,11 +109,13 @@ def test_messages_lost_in_dds_are_counted_per_topic(ros, tmp_path: Path) -> None
 
 def test_what_the_subscription_history_overwrites_is_counted_by_the_stamps(ros, tmp_path):
     """The node (qos_depth 100) is stopped (SIGSTOP) while a reliable publisher whose history
-    holds all 3000 messages publishes them. When it runs again its DDS threads take the messages
-    faster than it handles them, its own history overwrites all but the last ones, and DDS
-    reports none of that (``odom_lost`` 0): the odometry's stamps show the hole, and
-    ``odom_missing`` counts it, so that what was received plus what is missing is what was
-    published."""
+    holds all 3000 messages publishes them. When it runs again, DDS resends them; where its
+    threads take them faster than the node handles them, the node's own history overwrites
+    some, and DDS reports none of that (``odom_lost`` 0): the odometry's stamps show the hole,
+    and ``odom_missing`` counts it. Whether the history overwrites any depends on the pace of
+    the resends against the node's speed, which this test must not depend on (a faster node
+    took them all, on a loaded machine); either way what was received plus what is missing is
+    what was published. (test/core/test_hostile_inputs.py counts such a hole exactly.)"""
     n = 3000
     pub = ros.node.create_publisher(
         Odometry, '/odom', QoSProfile(depth=n, reliability=ReliabilityPolicy.RELIABLE)
@@ -146,7 +148,7 @@ def test_what_the_subscription_history_overwrites_is_counted_by_the_stamps(ros, 
             counts(), node.output())  # fmt: skip
         received, missing, lost = counts()
         print(f'published {n}: received {received}, missing {missing}, lost in DDS {lost}')
-        assert received < n and missing > 0 and received + missing == n
+        assert received + missing == n and lost == 0
         assert node.stop(signal.SIGINT) == 0
     finally:
         if node.proc.poll() is None:

@@ -398,9 +398,9 @@ def state_message(zeta, variance, with_variance, out):
     out[48] = -dpitch * sr + dyaw * cp * cr
     if not with_variance:
         return
+    v = variance
     p_x, v_x, p_pitch, r_pitch, p_y, v_y, p_roll, r_roll, p_yaw, r_yaw, p_z, v_z = (
-        variance[0], variance[1], variance[2], variance[3], variance[4], variance[5],
-        variance[6], variance[7], variance[8], variance[9], variance[10], variance[11])  # fmt: skip
+        v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9], v[10], v[11])
     # R (world from body, ZYX), its rows j weighed by the world-velocity variances v_j
     r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
     r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr

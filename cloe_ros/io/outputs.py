@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cloe_ros.core import kernels
 from cloe_ros.core.anticipation import CHANNELS
 from cloe_ros.core.engine import NS, Estimate
 from cloe_ros.core.identifier import ROW_NAMES
-from cloe_ros.core import kernels
 from cloe_ros.core.kinematics import euler_to_quaternion
 from cloe_ros.core.model import COUPLED_BLOCKS, PARAMETER_NAMES, STATE_NAMES
 from cloe_ros.core.samples import PathSample

@@ -1,0 +1,77 @@
+"""The compiled kernels add in numpy's order: under the golden test's pinned kernels (numpy's
+baseline loops, OpenBLAS's Nehalem kernels), a kernel's sums equal numpy's bit for bit, so that
+replacing numpy code by a kernel leaves the golden outputs as they were."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from cloe_ros.core import kernels
+from test.golden_outputs import PINNED_KERNELS, REPO
+
+CHECK = r'''
+import numpy as np
+from cloe_ros.core import kernels
+from test.golden_outputs import check_pinned_kernels
+
+check_pinned_kernels()
+rng = np.random.default_rng(0)
+for n in range(1, 30):  # einsum's sum of products, every length the identifier's steps use
+    a, b = rng.normal(size=(2, 500, n))
+    a[::7, 0] = 0.0
+    got = np.array([kernels.einsum_dot(x, y) for x, y in zip(a, b)])
+    assert np.array_equal(got, np.einsum('pj,pj->p', a, b)), n
+    assert np.array_equal(got, np.einsum('npj,npj->np', a[None], b[None])[0]), n
+print('ok')
+'''
+
+
+def test_the_kernels_sum_of_products_is_numpys_einsum_bit_for_bit_under_the_pin():
+    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
+    done = subprocess.run([sys.executable, '-c', CHECK], env=env, cwd=REPO, capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0 and done.stdout.strip() == 'ok', done.stderr[-2000:]
+
+
+def test_the_identifiers_step_is_the_numpy_formulas_on_one_vehicle():
+    """One vehicle's filter step written out in numpy (the channels, the filter bank's outputs
+    and next state, the regressors and the targets) equals the kernel's to round-off, whatever
+    the machine (the bitwise equality under the pin is the golden test's)."""
+    from cloe_ros.core import identifier as iv
+
+    rng = np.random.default_rng(2)
+    zeta0, r0 = rng.normal(size=(1, 12)), rng.normal(size=(1, 4))
+    ident = iv.IvIdentifier(iv.IdentifierConfig(), 0.01, zeta0, r0)
+    ident._fx[:] = rng.normal(size=ident._fx.shape)  # a state away from rest
+    zeta, r = rng.normal(size=(1, 12)), rng.normal(size=(1, 4))
+    fx, x_aux = ident._fx.copy(), ident.x_aux.copy()
+    x_new = ident._aux_ad[0] @ x_aux[0] + ident._aux_bd[0] @ r[0]
+    u = np.concatenate([zeta[0] / iv.STATE_SCALE, r[0] / iv.REFERENCE_SCALE,
+                        (x_new - ident._aux_shift[0]) / iv.STATE_SCALE, [0.0]])  # fmt: skip
+    f = np.append(fx[0] @ ident._cf + ident._df * u, 0.5)
+    d = fx[0] @ ident._cd + ident._dd * u
+    w = iv._StepWork.allocate(1)
+    kernels.iv_filter(
+        zeta, r, np.ones(1, bool), np.array([0.5]), ident._hist_z, ident._hist_r,
+        ident._hist_active, ident._hist_next, ident._hist_count, ident._aux_ad, ident._aux_bd,
+        ident.x_aux, ident._last_r, ident._aux_shift, ident._fx, ident._cf, ident._df, ident._cd,
+        ident._dd, ident._ad_t, ident._bd, iv.STATE_SCALE, iv.REFERENCE_SCALE, *iv.PHI_GATHER,
+        *iv.XI_GATHER, ident._mask_flat, iv.Y_F_GATHER_C, iv.Y_F_GATHER_A, iv.Y_D_GATHER_C,
+        iv.Y_D_GATHER_A, w.ones_rows, w.ones, 0.01, w.f, w.d, w.phi, w.xi, w.y,
+    )  # fmt: skip
+    np.testing.assert_allclose(ident.x_aux[0], x_new, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(w.f[0], f, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(w.d[0], d, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(ident._fx[0], fx[0] @ ident._ad_t + u[:, None] * ident._bd,
+                               rtol=1e-14, atol=1e-14)  # fmt: skip
+    phi = np.einsum('c,rcw->rw', f, iv.PHI_MAP) * ident._mask
+    xi = np.einsum('c,rcw->rw', f, iv.XI_MAP) * ident._mask
+    np.testing.assert_allclose(w.phi[0], phi.ravel(), rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(w.xi[0], xi.ravel(), rtol=1e-14, atol=1e-14)
+    y = f @ iv.Y_F_MAP.T + d @ iv.Y_D_MAP.T
+    np.testing.assert_allclose(w.y[0], y, rtol=1e-14, atol=1e-14)
+    assert ident._hist_count[0] == 1 and np.array_equal(ident._hist_z[0, 0], zeta[0])

@@ -389,6 +389,12 @@ class _StepWork:
     ones: np.ndarray
     ones_rows: np.ndarray
     excited: np.ndarray
+    phi_t: np.ndarray
+    xi_t: np.ndarray
+    forget: np.ndarray
+    u: np.ndarray
+    x: np.ndarray
+    fx: np.ndarray
 
     @classmethod
     def allocate(cls, n: int) -> _StepWork:
@@ -397,6 +403,9 @@ class _StepWork:
             phi=np.zeros((n, N_ROWS * WIDTH)), xi=np.zeros((n, N_ROWS * WIDTH)),
             y=np.zeros((n, N_ROWS)), increments=np.zeros((3, N_PACKED, n)), ones=np.ones(n),
             ones_rows=np.ones((n, N_ROWS)), excited=np.zeros((n, N_ROWS), dtype=bool),
+            phi_t=np.zeros((N_ROWS * WIDTH, n)), xi_t=np.zeros((N_ROWS * WIDTH, n)),
+            forget=np.zeros((N_ROWS, n)), u=np.zeros(N_CHANNELS), x=np.zeros(N_STATES),
+            fx=np.zeros((N_CHANNELS, 3)),
         )  # fmt: skip
 
 
@@ -658,7 +667,8 @@ class IvIdentifier(Rows):
             self._last_r, self._aux_shift, self._fx, self._cf, self._df, self._cd, self._dd,
             self._ad_t, self._bd, STATE_SCALE, REFERENCE_SCALE, PHI_GATHER[0], PHI_GATHER[1],
             XI_GATHER[0], XI_GATHER[1], self._mask_flat, Y_F_GATHER_C, Y_F_GATHER_A,
-            Y_D_GATHER_C, Y_D_GATHER_A, gate, weight, h, w.f, w.d, w.phi, w.xi, w.y,
+            Y_D_GATHER_C, Y_D_GATHER_A, gate, weight, h, w.f, w.d, w.phi, w.xi, w.y, w.u, w.x,
+            w.fx,
         )  # fmt: skip
         if not settled.any():
             return
@@ -666,6 +676,7 @@ class IvIdentifier(Rows):
         kernels.iv_short_window(
             w.phi, w.xi, w.y, _flat(self._rows), STAT_LEFT, STAT_RIGHT, h, mu_e, weight,
             self._statistics_t[_SHORT], self.res2, self.weight_e, self._steps, w.increments,
+            w.phi_t, w.xi_t,
         )  # fmt: skip
         waiting = None if weight is w.ones else weight
         due = (self._steps % self._excitation_every == 1) | (self._excitation_every == 1)
@@ -678,7 +689,7 @@ class IvIdentifier(Rows):
             excited &= settled[:, None]
         # long-window normal equations, forgetting only while excited
         kernels.iv_long_window(w.xi, w.y, excited, self._mu, h, STAT_ROW, w.increments,
-                               self._statistics_t[_LONG], _flat(self.rhs))  # fmt: skip
+                               self._statistics_t[_LONG], _flat(self.rhs), w.forget)  # fmt: skip
         due = (self._steps % self._solve_every == 0) | (self._solve_every == 1)
         _for_due(self._solve, due if waiting is None else due & settled)
 

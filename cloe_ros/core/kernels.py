@@ -165,8 +165,8 @@ _IV_FILTER = (
     f' intp[:, ::1], {_F2}, intp[:, ::1], {_F2}, boolean[::1], intp[:, ::1], {_F2}, {_I1}, {_F1},'
     # gate (N, rows), weight of the settled (N,), step h
     f' {_F2}, {_F1}, float64,'
-    # out: f, d, phi, xi (N, rows * W), y (N, rows)
-    f' {_F2}, {_F2}, {_F2}, {_F2}, {_F2})'
+    # out: f, d, phi, xi (N, rows * W), y (N, rows); work: u (C,), x (12,), the next state (C, 3)
+    f' {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F1}, {_F1}, {_F2})'
 )
 
 
@@ -174,7 +174,7 @@ _IV_FILTER = (
 def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, hist_count,
               aux_ad, aux_bd, x_aux, last_r, aux_shift, fx, cf, df, cd, dd, ad_t, bd,
               state_scale, reference_scale, phi_c, phi_a, xi_c, xi_a, mask, yf_c, yf_a, yd_c,
-              yd_a, gate, weight, h, f, d, phi, xi, y):  # fmt: skip
+              yd_a, gate, weight, h, f, d, phi, xi, y, u, x_new, fx_new):  # fmt: skip
     """The per-vehicle part of :meth:`~cloe_ros.core.identifier.IvIdentifier.step` up to its
     statistics, with that method's operations in its order: the history, the auxiliary model,
     the filter bank (its state advanced in place), and each vehicle's filtered channels ``f``,
@@ -182,9 +182,6 @@ def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, his
     ``weight`` (1 where the numpy code does not multiply: a product by 1 is exact)."""
     n_vehicles, n_states = zeta.shape
     n_channels = fx.shape[1]
-    u = np.empty(n_channels)
-    x_new = np.empty(n_states)
-    fx_new = np.empty((n_channels, 3))
     width = phi.shape[1] // y.shape[1]
     for n in range(n_vehicles):
         k = hist_next[n]
@@ -237,32 +234,45 @@ def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, his
                        + d[n, yd_c[p]] * yd_a[p]) * gate[n, p] * weight[n]  # fmt: skip
 
 
+@njit(f'void({_F2}, {_F2})', **_COMPILE)
+def _transpose(a, out):
+    """``out`` (M, N) = ``a`` (N, M) transposed."""
+    for n in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            out[j, n] = a[n, j]
+
+
 _IV_SHORT = (
     # phi, xi (N, rows * W), y (N, rows), the last solution (N, rows * W), the entries' left
     # and right factors (packed), h, mu_e (N,), the settled weight (N,)
     f'void({_F2}, {_F2}, {_F2}, {_F2}, {_I1}, {_I1}, float64, {_F1}, {_F1},'
     # in/out: the short statistics (3, packed, N), residual power (N, rows), weight_e (N,),
-    # steps (N,); out: the increments (3, packed, N)
-    f' float64[:, :, ::1], {_F2}, {_F1}, int64[::1], float64[:, :, ::1])'
+    # steps (N,); out: the increments (3, packed, N); work: phi and xi transposed (rows * W, N)
+    f' float64[:, :, ::1], {_F2}, {_F1}, int64[::1], float64[:, :, ::1], {_F2}, {_F2})'
 )
 
 
 @njit(_IV_SHORT, **_COMPILE)
 def iv_short_window(phi, xi, y, rows, left, right, h, mu_e, weight, short, res2, weight_e,
-                    steps, increments):  # fmt: skip
+                    steps, increments, phi_t, xi_t):  # fmt: skip
     """The short-window statistics of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`,
     in its order: the packed outer products ``xi phi^T h``, ``xi xi^T h`` and ``(phi h)
     phi^T`` into ``increments``, forgotten by ``mu_e`` and added; the residual power; the
     weight's integral and the steps (of the settled: ``weight`` 1 or 0)."""
-    n_vehicles = phi.shape[0]
+    _transpose(phi, phi_t)  # (rows * W, N): the loops below run along the vehicles
+    _transpose(xi, xi_t)
     for q in range(left.shape[0]):
-        a, b = left[q], right[q]
-        for n in range(n_vehicles):
-            increments[0, q, n] = xi[n, a] * phi[n, b] * h
-            increments[1, q, n] = xi[n, a] * xi[n, b] * h
-            increments[2, q, n] = phi[n, a] * h * phi[n, b]
-            for s in range(3):
-                short[s, q, n] = short[s, q, n] * mu_e[n] + increments[s, q, n]
+        pa, pb, xa, xb = phi_t[left[q]], phi_t[right[q]], xi_t[left[q]], xi_t[right[q]]
+        cross, gram_xi, gram_phi = increments[0, q], increments[1, q], increments[2, q]
+        s0, s1, s2 = short[0, q], short[1, q], short[2, q]
+        for n in range(pa.shape[0]):
+            cross[n] = xa[n] * pb[n] * h
+            gram_xi[n] = xa[n] * xb[n] * h
+            gram_phi[n] = pa[n] * h * pb[n]
+            s0[n] = s0[n] * mu_e[n] + cross[n]
+            s1[n] = s1[n] * mu_e[n] + gram_xi[n]
+            s2[n] = s2[n] * mu_e[n] + gram_phi[n]
+    n_vehicles = phi.shape[0]
     n_rows = y.shape[1]
     width = phi.shape[1] // n_rows
     for n in range(n_vehicles):
@@ -276,25 +286,31 @@ def iv_short_window(phi, xi, y, rows, left, right, h, mu_e, weight, short, res2,
 
 _IV_LONG = (
     # xi (N, rows * W), y (N, rows), excited (N, rows), mu, h, entries' rows (packed),
-    # increments (3, packed, N); in/out: the long statistics (2, packed, N), rhs (N, rows * W)
+    # increments (3, packed, N); in/out: the long statistics (2, packed, N), rhs (N, rows * W);
+    # work: the forgetting factors (rows, N)
     f'void({_F2}, {_F2}, boolean[:, ::1], float64, float64, {_I1}, float64[:, :, ::1],'
-    f' float64[:, :, ::1], {_F2})'
+    f' float64[:, :, ::1], {_F2}, {_F2})'
 )
 
 
 @njit(_IV_LONG, **_COMPILE)
-def iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs):
+def iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs, forget):
     """The long-window normal equations of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`
     in its order: forgotten by ``mu`` only where the row is excited, ``xi phi^T h`` and ``xi
     xi^T h`` added, and ``b += xi h y``."""
     n_vehicles, n_rows = y.shape
     width = xi.shape[1] // n_rows
+    # (rows, N): mu where excited, else 1
+    for n in range(n_vehicles):
+        for p in range(n_rows):
+            forget[p, n] = mu if excited[n, p] else 1.0
     for q in range(entry_row.shape[0]):
-        p = entry_row[q]
+        m = forget[entry_row[q]]
+        cross, gram_xi = long[0, q], long[1, q]
+        add_cross, add_xi = increments[0, q], increments[1, q]
         for n in range(n_vehicles):
-            m = mu if excited[n, p] else 1.0
-            for s in range(2):
-                long[s, q, n] = long[s, q, n] * m + increments[s, q, n]
+            cross[n] = cross[n] * m[n] + add_cross[n]
+            gram_xi[n] = gram_xi[n] * m[n] + add_xi[n]
     for n in range(n_vehicles):
         for j in range(xi.shape[1]):
             m = mu if excited[n, j // width] else 1.0

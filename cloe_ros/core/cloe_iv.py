@@ -39,19 +39,22 @@ from dataclasses import replace
 
 import numpy as np
 
-from cloe_ros.core.estimator import EstimatorConfig, StepBuffers, observer_drift, observer_update
+from cloe_ros.core import kernels
+from cloe_ros.core.estimator import KNOWN_A, KNOWN_C, EstimatorConfig, StepBuffers
 from cloe_ros.core.identifier import ROW_CHANNEL, IvIdentifier
 from cloe_ros.core.model import (
+    BLOCK_STARTS,
     COUPLED_BLOCKS,
     N_STATES,
     PAPER_COUPLING,
+    REGRESSOR_INDEX,
     UNKNOWN_ROWS,
     check_shape,
 )
 from cloe_ros.core.rows import Rows
 
-_COUPLED = [(b.states[1], b.states[2]) for b in COUPLED_BLOCKS]
-_UNKNOWN = list(UNKNOWN_ROWS)
+_COUPLED_ROWS = np.array([b.states[1] for b in COUPLED_BLOCKS], dtype=np.intp)
+_COUPLED_COLS = np.array([b.states[2] for b in COUPLED_BLOCKS], dtype=np.intp)
 
 
 def _shared(config: EstimatorConfig) -> EstimatorConfig:
@@ -105,7 +108,7 @@ class CloeIvEstimator(Rows):
         self.exponents = np.tile(np.asarray(config.sm_exponents, dtype=float), (n, 1))
         self._allocate_work(n)
         self.flying = np.ones(n, dtype=bool)
-        self.model_error = np.zeros((n, len(_UNKNOWN)))
+        self.model_error = np.zeros((n, len(UNKNOWN_ROWS)))
 
     def shares_settings(self, other: Rows) -> bool:
         return (
@@ -151,24 +154,18 @@ class CloeIvEstimator(Rows):
             msg = f'cloe_iv runs at a fixed step of {self.h} s, got {h}'
             raise ValueError(msg)
         cfg, buf = self.config, self.buffers
-        e, tmp = buf.e, buf.tmp
-        np.subtract(zeta, self.zeta_hat, out=e)
         theta_m, coupling_m = self.model
-        f = observer_drift(self.zeta_hat, theta_m, r, buf)
-        # the identified tilt couplings replace +-g in the velocity rows
-        for k, (row, col) in enumerate(_COUPLED):
-            f[:, row] += (coupling_m[:, k] - PAPER_COUPLING[k]) * self.zeta_hat[:, col]
-        # what the model misses on the rows it does not know (extended state, see the module doc)
-        f[:, _UNKNOWN] += self.model_error
-        self.model_error += h * (cfg.gamma_d * e[:, _UNKNOWN] - cfg.l_leak * self.model_error)
-        observer_update(self.zeta_hat, f, self.gain_l, zeta, h, self.lambda_, self.exponents, buf)
-        # bounded adaptive gain: l' = gamma e^2 - sigma (l - l_min), clipped to [l_min, l_max]
-        np.square(e, out=tmp)
-        tmp *= cfg.gamma_l
-        tmp -= cfg.l_leak * (self.gain_l - cfg.l_min)
-        tmp *= h
-        self.gain_l += tmp
-        np.clip(self.gain_l, cfg.l_min, cfg.l_max, out=self.gain_l)
+        # the observer (one compiled call): the identified tilt couplings replace +-g in the
+        # velocity rows; what the model misses on the rows it does not know is an extended
+        # state (see the module doc); the bounded adaptive gain
+        # l' = gamma e^2 - sigma (l - l_min), clipped to [l_min, l_max]
+        kernels.iv_observer(
+            np.ascontiguousarray(zeta, dtype=float), self.zeta_hat, theta_m, coupling_m,
+            np.ascontiguousarray(r, dtype=float), self.model_error, self.gain_l, self.lambda_,
+            self.exponents, float(h), cfg.gamma_d, cfg.l_leak, cfg.gamma_l, cfg.l_min, cfg.l_max,
+            _COUPLED_ROWS, _COUPLED_COLS, PAPER_COUPLING, UNKNOWN_ROWS, KNOWN_C, KNOWN_A,
+            REGRESSOR_INDEX, BLOCK_STARTS, buf.e, buf.w, buf.phi, buf.grad, buf.rows, buf.f,
+        )  # fmt: skip
         # identify only while commanded to fly: on the ground the closed-loop model does not hold
         self.flying = r[:, 3] > cfg.ground_altitude
         active = self.flying

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cloe_ros.core import kernels
 from cloe_ros.core.identifier import IdentifierConfig
 from cloe_ros.core.model import (
     A_KNOWN,
@@ -138,12 +139,25 @@ class StepBuffers:
         )
 
 
-_A_KNOWN_T = np.ascontiguousarray(A_KNOWN.T)
 #: For each entry of Theta: the reference channel of its block.
 PARAM_CHANNEL = np.array([b.reference for b in BLOCKS for _ in range(b.n_params)], dtype=np.intp)
-#: (4, 12) matrix placing one value per block on the block's last row.
-_TO_LAST_ROWS = np.zeros((len(BLOCKS), N_STATES))
-_TO_LAST_ROWS[np.arange(len(BLOCKS)), UNKNOWN_ROWS] = 1.0
+
+
+def _known_gathers() -> tuple[np.ndarray, np.ndarray]:
+    """The known dynamics :data:`A_KNOWN` as one product per row: the state each row reads and
+    its coefficient (0 where a row is unknown). With one term, ``A0 zeta_hat`` is that product
+    whatever the order of the matrix product's sum."""
+    channels, coefficients = np.zeros(N_STATES, dtype=np.intp), np.zeros(N_STATES)
+    for i in range(N_STATES):
+        (used,) = np.nonzero(A_KNOWN[i])
+        if len(used) > 1:
+            raise ValueError('a known row of A reads more than one state')
+        if len(used):
+            channels[i], coefficients[i] = used[0], A_KNOWN[i, used[0]]
+    return channels, coefficients
+
+
+KNOWN_C, KNOWN_A = _known_gathers()
 
 
 def observer_drift(
@@ -151,17 +165,14 @@ def observer_drift(
 ) -> np.ndarray:
     """``A(Theta_hat) zeta_hat + B(Theta_hat) r`` into ``buf.f``; fills ``buf.w`` and ``buf.phi``.
 
-    The known rows are ``A0 zeta_hat``; each block's last row is ``Theta_b . [zeta_hat_b ; r_b]``.
-    Returns ``buf.f``.
+    The known rows are ``A0 zeta_hat``; each block's last row is ``Theta_b . [zeta_hat_b ; r_b]``
+    (one compiled call, :func:`~cloe_ros.core.kernels.observer_drift`). Returns ``buf.f``.
     """
-    buf.w[:, :N_STATES] = zeta_hat
-    buf.w[:, N_STATES:] = r
-    np.take(buf.w, REGRESSOR_INDEX, axis=1, out=buf.phi, mode='clip')
-    np.matmul(zeta_hat, _A_KNOWN_T, out=buf.f)
-    np.multiply(theta_hat, buf.phi, out=buf.grad)
-    np.add.reduceat(buf.grad, BLOCK_STARTS, axis=1, out=buf.rows)
-    np.matmul(buf.rows, _TO_LAST_ROWS, out=buf.tmp)
-    buf.f += buf.tmp
+    kernels.observer_drift(
+        np.ascontiguousarray(zeta_hat, dtype=float), np.ascontiguousarray(theta_hat, dtype=float),
+        np.ascontiguousarray(r, dtype=float), KNOWN_C, KNOWN_A, REGRESSOR_INDEX, BLOCK_STARTS,
+        UNKNOWN_ROWS, buf.w, buf.phi, buf.grad, buf.rows, buf.f,
+    )  # fmt: skip
     return buf.f
 
 
@@ -178,22 +189,12 @@ def observer_update(
     """The observer's step of ``h`` s, in place, shared by CLOE, CLOE-SM and cloe_iv: the
     sliding-mode term ``lambda_ |e|^exponents sign(e)`` (``e = buf.e``; None: no term) added to
     the drift ``f``, then the semi-implicit update
-    ``zeta_hat+ = (zeta_hat + h (f + L zeta)) / (1 + h L)``."""
-    e, tmp, tmp2 = buf.e, buf.tmp, buf.tmp2
-    if lambda_ is not None:
-        np.abs(e, out=tmp)
-        np.power(tmp, exponents, out=tmp)
-        np.sign(e, out=tmp2)
-        tmp *= tmp2
-        tmp *= lambda_
-        f += tmp
-    np.multiply(gain_l, zeta, out=tmp)
-    tmp += f
-    tmp *= h
-    zeta_hat += tmp
-    np.multiply(gain_l, h, out=tmp2)
-    tmp2 += 1.0
-    zeta_hat /= tmp2
+    ``zeta_hat+ = (zeta_hat + h (f + L zeta)) / (1 + h L)`` (one compiled call,
+    :func:`~cloe_ros.core.kernels.observer_update`)."""
+    kernels.observer_update(
+        zeta_hat, f, gain_l, np.ascontiguousarray(zeta, dtype=float), float(h),
+        exponents if lambda_ is None else lambda_, lambda_ is not None, exponents, buf.e,
+    )  # fmt: skip
 
 
 def cloe_step(

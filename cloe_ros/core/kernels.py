@@ -446,3 +446,92 @@ def state_message(zeta, variance, with_variance, out):
     twist[12], twist[13], twist[14] = l02, l12, l22
     twist[21], twist[22], twist[23], twist[27], twist[28], twist[29] = a00, a01, a02, a01, a11, a12
     twist[33], twist[34], twist[35] = a02, a12, a22
+
+
+# ------------------------------------------------------------------------------ the observer
+
+
+@njit(f'void({_F2}, {_F2}, {_F2}, {_I1}, {_F1}, {_I1}, {_I1}, {_I1}, {_F2}, {_F2}, {_F2}, {_F2},'
+      f' {_F2})', **_COMPILE)  # fmt: skip
+def observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_starts,
+                   last_rows, w, phi, grad, rows, f):  # fmt: skip
+    """:func:`~cloe_ros.core.estimator.observer_drift` in its order: ``f = A(Theta) zeta_hat +
+    B(Theta) r`` (N, 12), the known rows one product each (``known_a`` times state
+    ``known_c``), each block's last row ``Theta_b . phi_b`` summed as ``np.add.reduceat`` sums
+    it; fills ``w``, ``phi``, ``grad`` and ``rows`` as that function did."""
+    n_states, n_params = zeta_hat.shape[1], theta.shape[1]
+    n_blocks = block_starts.shape[0]
+    for n in range(zeta_hat.shape[0]):
+        for i in range(n_states):
+            w[n, i] = zeta_hat[n, i]
+        for i in range(r.shape[1]):
+            w[n, n_states + i] = r[n, i]
+        for p in range(n_params):
+            phi[n, p] = w[n, regressor_index[p]]
+            grad[n, p] = theta[n, p] * phi[n, p]
+        for i in range(n_states):
+            f[n, i] = zeta_hat[n, known_c[i]] * known_a[i]
+        for b in range(n_blocks):  # (np.add.reduceat's order: the first term, plus the rest's
+            end = block_starts[b + 1] if b + 1 < n_blocks else n_params  # sum, term by term)
+            rest = 0.0
+            for p in range(block_starts[b] + 1, end):
+                rest += grad[n, p]
+            rows[n, b] = grad[n, block_starts[b]] + rest
+        for i in range(n_states):
+            add = 0.0
+            for b in range(n_blocks):
+                if last_rows[b] == i:
+                    add = rows[n, b]
+            f[n, i] = f[n, i] + add
+
+
+@njit(f'void({_F2}, {_F2}, {_F2}, {_F2}, float64, {_F2}, boolean, {_F2}, {_F2})', **_COMPILE)
+def observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, sliding, exponents, e):
+    """:func:`~cloe_ros.core.estimator.observer_update` in its order: with ``sliding``, the term
+    ``lambda_ |e|^exponents sign(e)`` added to ``f``; then ``zeta_hat+ = (zeta_hat + h (L zeta +
+    f)) / (1 + h L)``, in place."""
+    for n in range(zeta_hat.shape[0]):
+        for i in range(zeta_hat.shape[1]):
+            if sliding:
+                term = abs(e[n, i]) ** exponents[n, i]
+                term = term * np.sign(e[n, i])
+                f[n, i] = f[n, i] + term * lambda_[n, i]
+            step = (gain_l[n, i] * zeta[n, i] + f[n, i]) * h
+            zeta_hat[n, i] = (zeta_hat[n, i] + step) / (gain_l[n, i] * h + 1.0)
+
+
+@njit(f'void({_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, float64, float64,'
+      f' float64, float64, float64, float64, {_I1}, {_I1}, {_F1}, {_I1}, {_I1}, {_F1}, {_I1},'
+      f' {_I1}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2})', **_COMPILE)  # fmt: skip
+def iv_observer(zeta, zeta_hat, theta, coupling, r, model_error, gain_l, lambda_, exponents, h,
+                gamma_d, l_leak, gamma_l, l_min, l_max, coupled_rows, coupled_cols,
+                paper_coupling, unknown, known_c, known_a, regressor_index, block_starts, e, w,
+                phi, grad, rows, f):  # fmt: skip
+    """:meth:`~cloe_ros.core.cloe_iv.CloeIvEstimator.step`'s observer in its order: the error
+    ``e``; the drift of the model ``(theta, coupling)`` (the couplings replacing +-g, the
+    extended state ``model_error`` added on the unknown rows, then advanced); the sliding-mode
+    observer's step; the bounded adaptive gain."""
+    for n in range(zeta.shape[0]):
+        for i in range(zeta.shape[1]):
+            e[n, i] = zeta[n, i] - zeta_hat[n, i]
+    observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_starts, unknown,
+                   w, phi, grad, rows, f)  # fmt: skip
+    for n in range(zeta.shape[0]):
+        for k in range(coupled_rows.shape[0]):
+            row, col = coupled_rows[k], coupled_cols[k]
+            f[n, row] = f[n, row] + (coupling[n, k] - paper_coupling[k]) * zeta_hat[n, col]
+        for j in range(unknown.shape[0]):
+            u = unknown[j]
+            f[n, u] = f[n, u] + model_error[n, j]
+            model_error[n, j] = model_error[n, j] + h * (gamma_d * e[n, u]
+                                                         - l_leak * model_error[n, j])  # fmt: skip
+    observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, True, exponents, e)
+    for n in range(zeta.shape[0]):
+        for i in range(zeta.shape[1]):
+            rate = (e[n, i] * e[n, i] * gamma_l - l_leak * (gain_l[n, i] - l_min)) * h
+            g = gain_l[n, i] + rate
+            if g < l_min:
+                g = l_min
+            elif g > l_max:
+                g = l_max
+            gain_l[n, i] = g

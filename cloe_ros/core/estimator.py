@@ -122,7 +122,6 @@ class StepBuffers:
     f: np.ndarray
     rows: np.ndarray
     tmp: np.ndarray
-    tmp2: np.ndarray
     grad: np.ndarray
 
     @classmethod
@@ -134,7 +133,6 @@ class StepBuffers:
             f=np.zeros((n, N_STATES)),
             rows=np.zeros((n, len(BLOCKS))),
             tmp=np.zeros((n, N_STATES)),
-            tmp2=np.zeros((n, N_STATES)),
             grad=np.zeros((n, N_PARAMS)),
         )
 

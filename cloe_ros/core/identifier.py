@@ -318,18 +318,6 @@ CROSS_E, GRAM_XI, GRAM_PHI, CROSS, GRAM_XI_LONG = range(len(STATISTICS))
 _SHORT, _LONG = slice(0, 3), slice(3, 5)
 
 
-def _apply_map(f: np.ndarray, gather: tuple, out: np.ndarray, work: np.ndarray) -> None:
-    """``out`` (N, rows, WIDTH) = ``einsum('nc,rcw->nrw', f, map)`` of a :func:`_sparse_map`;
-    ``work`` is a scratch array of the same size."""
-    (c0, c1), (a0, a1) = gather
-    flat, tmp = out.reshape(len(f), -1), work.reshape(len(f), -1)
-    np.take(f, c0, axis=1, out=flat)
-    flat *= a0
-    np.take(f, c1, axis=1, out=tmp)
-    tmp *= a1
-    flat += tmp
-
-
 def filter_matrices(bandwidth: float, highpass: float, h: float):
     """Tustin discretisation of ``F`` and ``sF`` (common state): ``(Ad, Bd, Cf, Df, Cd, Dd)``.
 
@@ -659,7 +647,8 @@ class IvIdentifier(Rows):
         # started at different times, those still settling take part with no weight (nothing
         # added, nothing forgotten, no clock advanced)
         settled = self._t >= self._settle
-        weight = w.ones if settled.all() else settled.astype(float)
+        waiting = None if settled.all() else settled.astype(float)  # (None: none waits)
+        weight = w.ones if waiting is None else waiting
         gate = w.ones_rows if active is None else np.ascontiguousarray(active, dtype=float)
         kernels.iv_filter(
             zeta, r, whole, decay, self._hist_z, self._hist_r, self._hist_active,
@@ -678,7 +667,6 @@ class IvIdentifier(Rows):
             self._statistics_t[_SHORT], self.res2, self.weight_e, self._steps, w.increments,
             w.phi_t, w.xi_t,
         )  # fmt: skip
-        waiting = None if weight is w.ones else weight
         due = (self._steps % self._excitation_every == 1) | (self._excitation_every == 1)
         _for_due(self._update_excitation, due if waiting is None else due & settled)
         excited = w.excited  # (N, rows)

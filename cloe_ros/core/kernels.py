@@ -1,15 +1,19 @@
-"""Compiled kernels (numba) of the per-vehicle paths that numpy runs as many small calls.
+"""Compiled kernels (numba) of the per-vehicle paths that numpy ran as many small calls.
 
-A prediction scores its past predictions and interpolates its history several times a step;
-in numpy each of these is a few dozen calls on arrays of a few dozen entries, so call overhead,
-not arithmetic, is their cost. Each kernel here does one of them in one call, with the same
-operations in the same order as the numpy code it replaces (the golden test holds the outputs
-to 1e-9; the kernels' own tests hold them equal to that code, bit for bit):
+The identifier's and the observer's step, the guard's scoring, the history's interpolation, an
+odometry sample's checks and state, and the values of ``cloe/state``: in numpy each was a few
+dozen calls on arrays of a few dozen entries, so call overhead, not arithmetic, was their cost.
+Each kernel here does one of them in one call, with the same operations in the same order as
+the numpy code it replaced, so that under the golden test's pinned kernels (numpy's x86-64
+baseline loops, OpenBLAS's Nehalem kernels) the outputs are bitwise those of that code:
 
 * element-wise arithmetic is IEEE's in either (numba contracts nothing into fused multiply-adds
-  without ``fastmath``, which is off);
-* a sum over a short axis adds its terms from the first, as numpy's ``einsum`` inner loops do
-  for fewer terms than one SIMD block.
+  without ``fastmath``, which is off); transcendental functions are libm's in either;
+* a matrix product over at most three terms adds them from the first (OpenBLAS's order), or has
+  at most two non-zero terms, whose sum is the same in any order;
+* an ``einsum`` sum of products adds in the baseline loop's two lanes (:func:`einsum_dot`;
+  test/core/test_kernels.py checks it against numpy under the pin), and ``np.add.reduceat``
+  adds the first term to the sum of the rest.
 
 The kernels compile when this module is imported (explicit signatures) and are cached on disk
 beside it (``cache=True``), so no message ever waits on a compile: the first import on a
@@ -26,6 +30,26 @@ _COMPILE = dict(cache=True, nogil=True, error_model='numpy')  # x / 0 gives inf 
 _F1 = 'float64[::1]'
 _F2 = 'float64[:, ::1]'
 _I1 = 'intp[::1]'
+
+
+@njit(f'float64({_F1}, {_F1})', **_COMPILE)
+def einsum_dot(a, b):
+    """``np.einsum('j,j->', a, b)`` as numpy's x86-64 baseline (two-lane) loop adds it: two
+    lanes, the even and the odd terms; blocks of eight terms taken from their last pair; then
+    the lanes added."""
+    n = a.shape[0]
+    even = odd = 0.0
+    j = 0
+    while n - j >= 8:
+        for q in (6, 4, 2, 0):
+            even = a[j + q] * b[j + q] + even
+            odd = a[j + q + 1] * b[j + q + 1] + odd
+        j += 8
+    while j < n:
+        even = a[j] * b[j] + even
+        odd = (a[j + 1] * b[j + 1] if j + 1 < n else 0.0) + odd
+        j += 2
+    return even + odd
 
 
 @njit(f'intp({_F1}, float64)', **_COMPILE)
@@ -107,19 +131,13 @@ def score_ensemble(pending_t, pending, offsets, since, now, t, data, channels, c
                 for c in range(d):
                     err[i, c] = pending[p, i, k, c] - actual[c]
             weight = alpha if scored[k] else 1.0
-            for i in range(m):
+            for i in range(m):  # (einsum's 'pmd,pnd->pmn' and 'pmd,pmd->pm')
                 for j in range(m):
-                    s = 0.0
-                    for c in range(d):
-                        s += err[i, c] * err[j, c]
-                    cross[k, i, j] += weight * (s - cross[k, i, j])
+                    cross[k, i, j] += weight * (einsum_dot(err[i], err[j]) - cross[k, i, j])
             scored[k] = True
             slots[n], issued[n], horizons[n] = p, issue, k
             for i in range(m):
-                s = 0.0
-                for c in range(d):
-                    s += err[i, c] * err[i, c]
-                squared[n, i] = s
+                squared[n, i] = einsum_dot(err[i], err[i])
             n += 1
         if issue + offsets[k_max - 1] <= until:  # every pose is due: done
             pending_t[p] = np.nan
@@ -127,26 +145,6 @@ def score_ensemble(pending_t, pending, offsets, since, now, t, data, channels, c
 
 
 # --------------------------------------------------------------------- the IV identifier
-
-
-@njit(f'float64({_F1}, {_F1})', **_COMPILE)
-def einsum_dot(a, b):
-    """``np.einsum('j,j->', a, b)`` as numpy's x86-64 baseline (two-lane) loop adds it: two
-    lanes, the even and the odd terms; blocks of eight terms taken from their last pair; then
-    the lanes added."""
-    n = a.shape[0]
-    even = odd = 0.0
-    j = 0
-    while n - j >= 8:
-        for q in (6, 4, 2, 0):
-            even = a[j + q] * b[j + q] + even
-            odd = a[j + q + 1] * b[j + q + 1] + odd
-        j += 8
-    while j < n:
-        even = a[j] * b[j] + even
-        odd = (a[j + 1] * b[j + 1] if j + 1 < n else 0.0) + odd
-        j += 2
-    return even + odd
 
 
 _IV_FILTER = (

@@ -265,18 +265,16 @@ def harmonic_fits_batch(
     """:func:`harmonic_fits` of V series at once: ``t`` (V, T), ``y`` (V, T, C); returns
     (V, K, C) and (V, K, len(joint)), each series' as it gets alone (every product is per
     series and frequency)."""
-    wt = omegas[None, :, None] * t[:, None, :]  # (V, W, T)
-    basis = np.empty((*wt.shape, 3))  # (V, W, T, 3): 1, cos, sin (written in place: the
-    basis[..., 0] = 1.0  # temporaries of this function are most of its time)
-    np.cos(wt, out=basis[..., 1])
-    np.sin(wt, out=basis[..., 2])
+    t, y = np.ascontiguousarray(t, dtype=float), np.ascontiguousarray(y, dtype=float)
+    omegas = np.ascontiguousarray(omegas, dtype=float)
+    basis = np.empty((len(t), len(omegas), t.shape[1], 3))  # (V, W, T, 3): 1, cos, sin
+    kernels.harmonic_basis(t, omegas, basis)
     basis_t = np.swapaxes(basis, -1, -2)  # (V, W, 3, T); matmul (BLAS), 3x einsum's speed here
     gram = basis_t @ basis
     gram += 1e-9 * np.eye(3)
     coef = np.linalg.solve(gram, basis_t @ y[:, None])  # (V, W, 3, C)
-    fit = basis @ coef
-    fit -= y[:, None]
-    resid = np.sum(np.square(fit, out=fit), axis=-2)  # (V, W, C)
+    resid = np.empty((len(t), len(omegas), y.shape[2]))  # (V, W, C)
+    kernels.harmonic_residuals(basis, coef, y, resid)
     series = np.arange(len(t))[:, None]
 
     def extrapolate(best: np.ndarray, columns: np.ndarray) -> np.ndarray:  # best (V, C')

@@ -533,3 +533,43 @@ def iv_observer(zeta, zeta_hat, theta, coupling, r, model_error, gain_l, lambda_
             elif g > l_max:
                 g = l_max
             gain_l[n, i] = g
+
+
+# --------------------------------------------------------------------------- the intent's fits
+
+
+@njit('void(float64[:, ::1], float64[::1], float64[:, :, :, ::1])', **_COMPILE)
+def harmonic_basis(t, omegas, basis):
+    """``basis`` (V, W, T, 3) = ``1, cos(w t), sin(w t)`` of every series' times ``t`` (V, T)
+    and frequency ``omegas`` (W,): :func:`~cloe_ros.core.anticipation.harmonic_fits_batch`'s
+    basis (libm's cos and sin, as numpy's baseline loops call them)."""
+    n_series, n_times = t.shape
+    for v in range(n_series):
+        for w in range(omegas.shape[0]):
+            omega = omegas[w]
+            for i in range(n_times):
+                wt = omega * t[v, i]
+                basis[v, w, i, 0] = 1.0
+                basis[v, w, i, 1] = np.cos(wt)
+                basis[v, w, i, 2] = np.sin(wt)
+
+
+@njit('void(float64[:, :, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1],'
+      ' float64[:, :, ::1])', **_COMPILE)  # fmt: skip
+def harmonic_residuals(basis, coef, y, resid):
+    """``resid`` (V, W, C) = the squared error of the fits ``basis @ coef`` (bases (V, W, T, 3),
+    coefficients (V, W, 3, C)) to ``y`` (V, T, C), summed over the times: the numpy code's
+    ``np.sum((basis @ coef - y) ** 2, axis=-2)`` in its order (a three-term product added from
+    its first term; the sum over the times, a reduction along a strided axis, from the first
+    time on)."""
+    n_series, n_omegas, n_times, _ = basis.shape
+    n_columns = y.shape[2]
+    for v in range(n_series):
+        for w in range(n_omegas):
+            b, c = basis[v, w], coef[v, w]
+            for k in range(n_columns):
+                total = 0.0
+                for i in range(n_times):
+                    e = (b[i, 0] * c[0, k] + b[i, 1] * c[1, k]) + b[i, 2] * c[2, k] - y[v, i, k]
+                    total = total + e * e if i else e * e
+                resid[v, w, k] = total

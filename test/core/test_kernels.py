@@ -26,11 +26,29 @@ for n in range(1, 30):  # einsum's sum of products, every length the identifier'
     got = np.array([kernels.einsum_dot(x, y) for x, y in zip(a, b)])
     assert np.array_equal(got, np.einsum('pj,pj->p', a, b)), n
     assert np.array_equal(got, np.einsum('npj,npj->np', a[None], b[None])[0]), n
+omegas = 2.0 * np.pi / np.geomspace(1.5, 30.0, 60)
+for v, n in ((1, 10), (7, 33), (20, 61)):  # the intent's harmonic fits: basis and residuals
+    t = -np.sort(rng.uniform(0.0, 3.2, size=(v, n)), axis=1)
+    y = rng.normal(size=(v, n, 4)) * 30.0
+    wt = omegas[None, :, None] * t[:, None, :]
+    basis = np.empty((*wt.shape, 3))
+    basis[..., 0] = 1.0
+    np.cos(wt, out=basis[..., 1])
+    np.sin(wt, out=basis[..., 2])
+    got = np.empty_like(basis)
+    kernels.harmonic_basis(t, omegas, got)
+    assert np.array_equal(got, basis), v
+    coef = rng.normal(size=(v, len(omegas), 3, 4))
+    resid = np.sum(np.square(basis @ coef - y[:, None]), axis=-2)
+    got = np.empty_like(resid)
+    kernels.harmonic_residuals(basis, coef, y, got)
+    assert np.array_equal(got, resid), v
 print('ok')
 '''
 
 
-def test_the_kernels_sum_of_products_is_numpys_einsum_bit_for_bit_under_the_pin():
+def test_the_kernels_sums_are_numpys_bit_for_bit_under_the_pin():
+    """einsum's sum of products, and the intent's harmonic basis and fit residuals."""
     env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
     done = subprocess.run([sys.executable, '-c', CHECK], env=env, cwd=REPO, capture_output=True,
                           text=True, timeout=300)  # fmt: skip

@@ -25,7 +25,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, types
 
-_COMPILE = dict(cache=True, nogil=True, error_model='numpy')  # x / 0 gives inf or nan
+# The cache holds machine code by this file's path, and what it pickles names the module: this
+# file loaded under another name (a script's importlib, a checker) would leave entries that the
+# package's own import then fails to load. Only the package's module reads and writes it.
+_CACHED = __name__ == 'cloe_ros.core.kernels'
+_COMPILE = dict(cache=_CACHED, nogil=True, error_model='numpy')  # x / 0 gives inf or nan
 
 _F1 = 'float64[::1]'
 _F2 = 'float64[:, ::1]'

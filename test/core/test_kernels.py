@@ -93,3 +93,22 @@ def test_the_identifiers_step_is_the_numpy_formulas_on_one_vehicle():
     y = f @ iv.Y_F_MAP.T + d @ iv.Y_D_MAP.T
     np.testing.assert_allclose(w.y[0], y, rtol=1e-14, atol=1e-14)
     assert ident._hist_count[0] == 1 and np.array_equal(ident._hist_z[0, 0], zeta[0])
+
+
+def test_the_kernels_loaded_under_another_name_leave_the_packages_cache_alone(tmp_path):
+    """The machine code is cached by the file's path, and its entries name their module: the
+    file loaded under another name (a script's importlib) compiles without the cache, so the
+    package's own import still loads what is cached (an entry of the other name would fail it)."""
+    load = (
+        'import importlib.util, sys\n'
+        'spec = importlib.util.spec_from_file_location("elsewhere", sys.argv[1])\n'
+        'module = importlib.util.module_from_spec(spec)\n'
+        'spec.loader.exec_module(module)\n'
+    )  # fmt: skip
+    # a cache of its own, empty: the first load compiles, and would write its entries there
+    env = {**os.environ, 'PYTHONPATH': str(REPO), 'NUMBA_CACHE_DIR': str(tmp_path / 'cache')}
+    for code, args in ((load, [kernels.__file__]), ('import cloe_ros.core.kernels', [])):
+        done = subprocess.run([sys.executable, '-c', code, *args], env=env, cwd=tmp_path,
+                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]
+    assert any((tmp_path / 'cache').rglob('*.nbi'))  # (the package's import did cache)

@@ -67,7 +67,7 @@ from cloe_ros.core.anticipation import (
 )
 from cloe_ros.core.covariance import ErrorCovariance
 from cloe_ros.core.estimator import ConfigError, EstimatorConfig
-from cloe_ros.core.fleet import Fleet, PooledEstimator, row_of
+from cloe_ros.core.fleet import Fleet, PooledEstimator, StepOutputs, row_of
 from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
 from cloe_ros.core.kinematics import (
     odometry_to_state_one,
@@ -976,25 +976,31 @@ class VehicleEngine:
 
     def complete_step(
         self, step: Step, ok: bool, out: list[Estimate], variance: np.ndarray | None = None,
-        defer: bool = False,
+        defer: bool = False, outputs: tuple[StepOutputs, int] | None = None,
     ) -> bool:  # fmt: skip
         """After the estimator stepped (``ok``: without failing), the estimate of ``step`` into
         ``out``; False if the estimator diverged (it restarts on the next step's data).
         ``variance``: the error statistics' update for this step if already made (a fleet
         updates those of a batch at once, :meth:`ErrorCovariance.update_many`). ``defer``: a
         prediction due is left to the caller (:meth:`take_deferred`), to run before this
-        vehicle's next step."""
+        vehicle's next step. ``outputs``: the estimator's outputs of the batch this step was in
+        and this vehicle's index in it, when gathered already (:class:`StepOutputs`)."""
         try:
             if not ok:
                 raise FloatingPointError('the step failed')
-            est, i = row_of(self._est)
             self._t_ns = step.t_ns
             self._last_r = step.used
             self._track_offsets(step.zeta, step.used)
-            values = (*est.zeta_hat[i].tolist(), *est.theta_hat[i].tolist())
-            if not all(map(math.isfinite, values)):
+            if outputs is None:
+                est, i = row_of(self._est)
+                values = (*est.zeta_hat[i].tolist(), *est.theta_hat[i].tolist())
+                finite, row = all(map(math.isfinite, values)), None
+            else:
+                finite, row = bool(outputs[0].finite[outputs[1]]), outputs[0].row(outputs[1])
+            if not finite:
                 raise FloatingPointError('non-finite estimate')
-            out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used, variance, defer))
+            out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used, variance, defer,
+                                      row))  # fmt: skip
         except NUMERICAL_FAILURES:
             # a diverged estimator never publishes: start over on the next step's data
             self._diverged(step.t_ns)
@@ -1020,28 +1026,26 @@ class VehicleEngine:
 
     def _estimate(
         self, t_ns: int, zeta: np.ndarray, r: np.ndarray, used: np.ndarray | None = None,
-        variance: np.ndarray | None = None, defer: bool = False,
+        variance: np.ndarray | None = None, defer: bool = False, row: tuple | None = None,
     ) -> Estimate:  # fmt: skip
         """The estimate at ``t_ns``: ``r`` is the reference as received, ``used`` the one the
         estimator stepped with (the same unless a channel is not tracked); ``variance`` the
-        error statistics' update if made already (see :meth:`complete_step`)."""
+        error statistics' update if made already (see :meth:`complete_step`); ``row`` the
+        estimator's outputs for this vehicle if gathered already (:meth:`StepOutputs.row`),
+        else they are copied out of the estimator."""
         used = r if used is None else used
-        est, i = row_of(self._est)
-        ident = getattr(est, 'identifier', None)
-        model_theta, model_coupling = est.model
-        e = Estimate(
-            t_ns,
-            est.zeta_hat[i].copy(),
-            est.theta_hat[i].copy(),
-            est.gain_l[i].copy(),
-            zeta,
-            r,
-            coupling=est.coupling[i].copy(),
-            identification=None if ident is None else (
-                ident.excitation[i].copy(), ident.uncertainty[i].copy(), ident.status[i].copy()),
-            model=(model_theta[i].copy(), model_coupling[i].copy()),
-            trust=self._trust,
-        )  # fmt: skip
+        if row is None:
+            est, i = row_of(self._est)
+            ident = getattr(est, 'identifier', None)
+            model_theta, model_coupling = est.model
+            row = (est.zeta_hat[i].copy(), est.theta_hat[i].copy(), est.gain_l[i].copy(),
+                   est.coupling[i].copy(), None if ident is None else (
+                       ident.excitation[i].copy(), ident.uncertainty[i].copy(),
+                       ident.status[i].copy()),
+                   (model_theta[i].copy(), model_coupling[i].copy()))  # fmt: skip
+        zeta_hat, theta_hat, gain_l, coupling, identification, model = row
+        e = Estimate(t_ns, zeta_hat, theta_hat, gain_l, zeta, r, coupling=coupling,
+                     identification=identification, model=model, trust=self._trust)
         if variance is None:
             variance = self._covariance.update(zeta, e.zeta_hat, e.gain_l)
         e.error_variance = variance.copy()

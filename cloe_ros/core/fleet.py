@@ -86,6 +86,34 @@ def row_of(est) -> tuple[object, int]:
     return est, 0
 
 
+class StepOutputs:
+    """What the estimates of a batch that stepped hold, gathered from the batched estimator
+    ``est`` once for its vehicles ``rows`` (new arrays, (K, ...)): each vehicle's estimate takes
+    views of its row (:meth:`row`) instead of copying each array out of the estimator."""
+
+    __slots__ = ('coupling', 'finite', 'gain_l', 'identification', 'model', 'theta_hat',
+                 'zeta_hat')  # fmt: skip
+
+    def __init__(self, est, rows: np.ndarray) -> None:
+        self.zeta_hat, self.theta_hat = est.zeta_hat[rows], est.theta_hat[rows]
+        self.gain_l, self.coupling = est.gain_l[rows], est.coupling[rows]
+        ident = getattr(est, 'identifier', None)
+        self.identification = None if ident is None else (
+            ident.excitation[rows], ident.uncertainty[rows], ident.status[rows])  # fmt: skip
+        model_theta, model_coupling = est.model
+        self.model = model_theta[rows], model_coupling[rows]
+        #: per vehicle: its state and parameters are all finite
+        self.finite = (np.isfinite(self.zeta_hat).all(axis=1)
+                       & np.isfinite(self.theta_hat).all(axis=1))  # fmt: skip
+
+    def row(self, k: int) -> tuple:
+        """Vehicle ``k``'s ``(zeta_hat, theta_hat, gain_l, coupling, identification, model)``."""
+        ident = self.identification
+        return (self.zeta_hat[k], self.theta_hat[k], self.gain_l[k], self.coupling[k],
+                None if ident is None else (ident[0][k], ident[1][k], ident[2][k]),
+                (self.model[0][k], self.model[1][k]))  # fmt: skip
+
+
 class EstimatorPool:
     """The estimators of vehicles whose settings agree, as the rows of one estimator."""
 
@@ -196,6 +224,7 @@ class Fleet:
                 first, step = batch[0]
                 est = first.estimator
                 variances = [None] * len(batch)
+                outputs = None
                 if isinstance(est, PooledEstimator):
                     steps = [s for _, s in batch]
                     zeta = np.array([s.zeta for s in steps])
@@ -203,12 +232,18 @@ class Fleet:
                     used = np.array([s.used for s in steps])
                     tracked = _tracked([s.tracked for s in steps])
                     ok = est.pool.step(names, zeta, used, first.step_s, tracked)
-                    if ok and len(batch) > 1:
-                        variances = _error_variances(est.pool, names, batch, zeta)
+                    if ok:
+                        rows = np.fromiter((est.pool.rows[k] for k in names), dtype=np.intp,
+                                           count=len(names))  # fmt: skip
+                        outputs = StepOutputs(est.pool.est, rows)
+                        if len(batch) > 1:
+                            variances = _error_variances(outputs, batch, zeta)
                 else:
                     ok = first.step_alone(step)
-                for (engine, step), variance in zip(batch, variances):
-                    if engine.complete_step(step, ok, out[engine.name], variance, defer=True):
+                for k, ((engine, step), variance) in enumerate(zip(batch, variances)):
+                    row = None if outputs is None else (outputs, k)
+                    if engine.complete_step(step, ok, out[engine.name], variance, defer=True,
+                                            outputs=row):  # fmt: skip
                         engines.append(engine)
                         e = engine.take_deferred()
                         if e is not None:
@@ -253,19 +288,16 @@ class RecordingBatches:
         return self.fleet.advance(due)
 
 
-def _error_variances(pool: EstimatorPool, names: list, batch: list, zeta: np.ndarray) -> list:
+def _error_variances(outputs: StepOutputs, batch: list, zeta: np.ndarray) -> list:
     """The error statistics' updates of a batch that stepped (:class:`ErrorCovariance`), at
     once; None for a vehicle whose estimate is not finite (its engine restarts it, and its
     statistics take nothing of that step)."""
-    rows = np.fromiter((pool.rows[k] for k in names), dtype=np.intp, count=len(names))
-    zeta_hat, gain_l = pool.est.zeta_hat[rows], pool.est.gain_l[rows]
-    finite = np.isfinite(zeta_hat).all(axis=1) & np.isfinite(pool.est.theta_hat[rows]).all(axis=1)
     out = [None] * len(batch)
-    which = np.flatnonzero(finite)
+    which = np.flatnonzero(outputs.finite)
     if len(which):
         covs = [batch[i][0]._covariance for i in which]
-        variances = ErrorCovariance.update_many(covs, zeta[which], zeta_hat[which],
-                                                gain_l[which])  # fmt: skip
+        variances = ErrorCovariance.update_many(covs, zeta[which], outputs.zeta_hat[which],
+                                                outputs.gain_l[which])  # fmt: skip
         for j, i in enumerate(which):
             out[i] = variances[j]
     return out

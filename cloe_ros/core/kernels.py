@@ -1,8 +1,10 @@
 """Compiled kernels (numba) of the per-vehicle paths that numpy ran as many small calls.
 
 The identifier's and the observer's step, the guard's scoring, the history's interpolation, an
-odometry sample's checks and state, and the values of ``cloe/state``: in numpy each was a few
-dozen calls on arrays of a few dozen entries, so call overhead, not arithmetic, was their cost.
+odometry sample's checks and state, the values of ``cloe/state``, and the basis and residuals of
+the intent's harmonic fits: in numpy each was a few dozen calls on arrays of a few dozen entries
+(or, for the fits, temporaries and a reduction along a strided axis), so call overhead, not
+arithmetic, was their cost.
 Each kernel here does one of them in one call, with the same operations in the same order as
 the numpy code it replaced, so that under the golden test's pinned kernels (numpy's x86-64
 baseline loops, OpenBLAS's Nehalem kernels) the outputs are bitwise those of that code:
@@ -12,8 +14,16 @@ baseline loops, OpenBLAS's Nehalem kernels) the outputs are bitwise those of tha
 * a matrix product over at most three terms adds them from the first (OpenBLAS's order), or has
   at most two non-zero terms, whose sum is the same in any order;
 * an ``einsum`` sum of products adds in the baseline loop's two lanes (:func:`einsum_dot`;
-  test/core/test_kernels.py checks it against numpy under the pin), and ``np.add.reduceat``
-  adds the first term to the sum of the rest.
+  test/core/test_kernels.py checks it against numpy under the pin), ``np.add.reduceat``
+  adds the first term to the sum of the rest, and a sum along a strided axis adds from its
+  first entry on.
+
+What stays in numpy: LAPACK's solves and decompositions (the identifier's periodic solve and
+excitation measures, the simplex weights), and the products over many terms that OpenBLAS sums
+in its own blocked order (the harmonic fits' Gram matrices). Equivalent small-matrix code is not
+enough there: the identifier's systems are ill-conditioned along the directions the flight does
+not excite, and a compiled LU and Jacobi eigensolver moved the golden outputs by up to 6e-9
+(EVALUATION.md, section 4).
 
 The kernels compile when this module is imported (explicit signatures) and are cached on disk
 beside it (``cache=True``), so no message ever waits on a compile: the first import on a
@@ -22,21 +32,51 @@ machine takes a few seconds, later ones load the machine code.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from numba import njit, types
+from numba.core.errors import NumbaError
+
+_COMPILE = dict(nogil=True, error_model='numpy')  # x / 0 gives inf or nan
 
 # The cache holds machine code by this file's path, and what it pickles names the module: this
 # file loaded under another name (a script's importlib, a checker) would leave entries that the
 # package's own import then fails to load. Only the package's module reads and writes it.
 _CACHED = __name__ == 'cloe_ros.core.kernels'
-_COMPILE = dict(cache=_CACHED, nogil=True, error_model='numpy')  # x / 0 gives inf or nan
+
+
+def _compiled(signature, **options):
+    """``numba.njit(signature, **options)``, with numba's cache where it can have one. Where it
+    cannot (no writable folder for it: the package's read-only, and so the user's cache folder,
+    with no ``NUMBA_CACHE_DIR``; or an entry it cannot load), the kernels compile without it, in
+    every process that imports them (a few seconds, still before any message), and one warning
+    says so."""
+
+    def decorate(func):
+        global _CACHED
+        if _CACHED:
+            try:
+                return njit(signature, cache=True, **options)(func)
+            except NumbaError:  # the kernel itself does not compile: not the cache's problem
+                raise
+            except Exception as err:  # whatever else the cache's problem, compile without it
+                _CACHED = False
+                warnings.warn(
+                    f'cloe_ros: numba cannot cache the compiled kernels ({err}); each process '
+                    'compiles them when it starts. Set NUMBA_CACHE_DIR to a writable folder to '
+                    'keep them.', RuntimeWarning, stacklevel=2)  # fmt: skip
+        return njit(signature, cache=False, **options)(func)
+
+    return decorate
+
 
 _F1 = 'float64[::1]'
 _F2 = 'float64[:, ::1]'
 _I1 = 'intp[::1]'
 
 
-@njit(f'float64({_F1}, {_F1})', **_COMPILE)
+@_compiled(f'float64({_F1}, {_F1})', **_COMPILE)
 def einsum_dot(a, b):
     """``np.einsum('j,j->', a, b)`` as numpy's x86-64 baseline (two-lane) loop adds it: two
     lanes, the even and the odd terms; blocks of eight terms taken from their last pair; then
@@ -56,7 +96,7 @@ def einsum_dot(a, b):
     return even + odd
 
 
-@njit(f'intp({_F1}, float64)', **_COMPILE)
+@_compiled(f'intp({_F1}, float64)', **_COMPILE)
 def _count_not_after(t, x):
     """How many of the increasing ``t`` are <= ``x``: ``np.searchsorted(t, x, 'right')``."""
     low, high = 0, t.shape[0]
@@ -69,7 +109,7 @@ def _count_not_after(t, x):
     return low
 
 
-@njit(f'void({_F1}, float64[:, :], float64, {_I1}, float64[::1])', **_COMPILE)
+@_compiled(f'void({_F1}, float64[:, :], float64, {_I1}, float64[::1])', **_COMPILE)
 def _interp_into(t, data, x, channels, out):
     """``data`` (T, C) sampled at ``t`` (T,), at ``x`` (in the span), for ``channels``, into
     ``out``: the arithmetic of ``np.interp`` (a sample's own time, and the ends, give the
@@ -85,7 +125,7 @@ def _interp_into(t, data, x, channels, out):
         out[c] = (data[j + 1, channels[c]] - d0) / dt * (x - t[j]) + d0
 
 
-@njit(f'void({_F1}, float64[:, :], {_F1}, {_I1}, {_F2})', **_COMPILE)
+@_compiled(f'void({_F1}, float64[:, :], {_F1}, {_I1}, {_F2})', **_COMPILE)
 def interpolate(t, data, times, channels, out):
     """``out`` (M, C) = ``data`` (T, C) sampled at the increasing ``t`` (T,), interpolated at
     ``times`` (M,) for ``channels`` (C,) as ``np.interp`` does; NaN outside the span (1e-9 s
@@ -99,7 +139,7 @@ def interpolate(t, data, times, channels, out):
             _interp_into(t, data, x, channels, out[i])
 
 
-@njit(
+@_compiled(
     f'intp({_F1}, float64[:, :, :, ::1], {_F1}, float64, float64, {_F1}, float64[:, :], {_I1},'
     f' float64[:, :, ::1], boolean[::1], float64, {_I1}, {_F1}, {_I1}, {_F2})',
     **_COMPILE,
@@ -172,7 +212,7 @@ _IV_FILTER = (
 )
 
 
-@njit(_IV_FILTER, **_COMPILE)
+@_compiled(_IV_FILTER, **_COMPILE)
 def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, hist_count,
               aux_ad, aux_bd, x_aux, last_r, aux_shift, fx, cf, df, cd, dd, ad_t, bd,
               state_scale, reference_scale, phi_c, phi_a, xi_c, xi_a, mask, yf_c, yf_a, yd_c,
@@ -236,7 +276,7 @@ def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, his
                        + d[n, yd_c[p]] * yd_a[p]) * gate[n, p] * weight[n]  # fmt: skip
 
 
-@njit(f'void({_F2}, {_F2})', **_COMPILE)
+@_compiled(f'void({_F2}, {_F2})', **_COMPILE)
 def _transpose(a, out):
     """``out`` (M, N) = ``a`` (N, M) transposed."""
     for n in range(a.shape[0]):
@@ -254,7 +294,7 @@ _IV_SHORT = (
 )
 
 
-@njit(_IV_SHORT, **_COMPILE)
+@_compiled(_IV_SHORT, **_COMPILE)
 def iv_short_window(phi, xi, y, rows, left, right, h, mu_e, weight, short, res2, weight_e,
                     steps, increments, phi_t, xi_t):  # fmt: skip
     """The short-window statistics of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`,
@@ -295,7 +335,7 @@ _IV_LONG = (
 )
 
 
-@njit(_IV_LONG, **_COMPILE)
+@_compiled(_IV_LONG, **_COMPILE)
 def iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs, forget):
     """The long-window normal equations of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`
     in its order: forgotten by ``mu`` only where the row is excited, ``xi phi^T h`` and ``xi
@@ -327,9 +367,9 @@ _RO = types.Array(types.float64, 1, 'A', readonly=True)
 ODOMETRY_OK, NON_FINITE, BAD_QUATERNION, BAD_POSITION, BAD_VELOCITY, BAD_RATE, BAD_TILT = range(7)
 
 
-@njit(types.intp(_RO, _RO, _RO, _RO, types.float64, types.float64, types.float64,
-                 types.float64, types.float64, types.float64[::1], types.float64[::1]),
-      **_COMPILE)  # fmt: skip
+@_compiled(types.intp(_RO, _RO, _RO, _RO, types.float64, types.float64, types.float64,
+                      types.float64, types.float64, types.float64[::1], types.float64[::1]),
+           **_COMPILE)  # fmt: skip
 def odometry_state(position, orientation, linear, angular, quaternion_tolerance, max_position,
                    max_speed, max_rate, max_tilt, zeta, detail):  # fmt: skip
     """The checks of an odometry sample, in order, and its state: returns the first problem
@@ -384,7 +424,7 @@ def odometry_state(position, orientation, linear, angular, quaternion_tolerance,
     return ODOMETRY_OK
 
 
-@njit(types.void(_RO, _RO, types.boolean, types.float64[::1]), **_COMPILE)
+@_compiled(types.void(_RO, _RO, types.boolean, types.float64[::1]), **_COMPILE)
 def state_message(zeta, variance, with_variance, out):
     """The 85 doubles of ``cloe/state`` (an Odometry, in field order: position, orientation,
     pose covariance, body velocity, body rates, twist covariance) of the state ``zeta`` (12,)
@@ -453,8 +493,8 @@ def state_message(zeta, variance, with_variance, out):
 # ------------------------------------------------------------------------------ the observer
 
 
-@njit(f'void({_F2}, {_F2}, {_F2}, {_I1}, {_F1}, {_I1}, {_I1}, {_I1}, {_F2}, {_F2}, {_F2}, {_F2},'
-      f' {_F2})', **_COMPILE)  # fmt: skip
+@_compiled(f'void({_F2}, {_F2}, {_F2}, {_I1}, {_F1}, {_I1}, {_I1}, {_I1}, {_F2}, {_F2}, {_F2},'
+           f' {_F2}, {_F2})', **_COMPILE)  # fmt: skip
 def observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_starts,
                    last_rows, w, phi, grad, rows, f):  # fmt: skip
     """:func:`~cloe_ros.core.estimator.observer_drift` in its order: ``f = A(Theta) zeta_hat +
@@ -487,7 +527,7 @@ def observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_
             f[n, i] = f[n, i] + add
 
 
-@njit(f'void({_F2}, {_F2}, {_F2}, {_F2}, float64, {_F2}, boolean, {_F2}, {_F2})', **_COMPILE)
+@_compiled(f'void({_F2}, {_F2}, {_F2}, {_F2}, float64, {_F2}, boolean, {_F2}, {_F2})', **_COMPILE)
 def observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, sliding, exponents, e):
     """:func:`~cloe_ros.core.estimator.observer_update` in its order: with ``sliding``, the term
     ``lambda_ |e|^exponents sign(e)`` added to ``f``; then ``zeta_hat+ = (zeta_hat + h (L zeta +
@@ -502,9 +542,9 @@ def observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, sliding, exponents, e
             zeta_hat[n, i] = (zeta_hat[n, i] + step) / (gain_l[n, i] * h + 1.0)
 
 
-@njit(f'void({_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, float64, float64,'
-      f' float64, float64, float64, float64, {_I1}, {_I1}, {_F1}, {_I1}, {_I1}, {_F1}, {_I1},'
-      f' {_I1}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2})', **_COMPILE)  # fmt: skip
+@_compiled(f'void({_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, float64, float64,'
+           f' float64, float64, float64, float64, {_I1}, {_I1}, {_F1}, {_I1}, {_I1}, {_F1}, {_I1},'
+           f' {_I1}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2})', **_COMPILE)  # fmt: skip
 def iv_observer(zeta, zeta_hat, theta, coupling, r, model_error, gain_l, lambda_, exponents, h,
                 gamma_d, l_leak, gamma_l, l_min, l_max, coupled_rows, coupled_cols,
                 paper_coupling, unknown, known_c, known_a, regressor_index, block_starts, e, w,
@@ -542,7 +582,7 @@ def iv_observer(zeta, zeta_hat, theta, coupling, r, model_error, gain_l, lambda_
 # --------------------------------------------------------------------------- the intent's fits
 
 
-@njit('void(float64[:, ::1], float64[::1], float64[:, :, :, ::1])', **_COMPILE)
+@_compiled('void(float64[:, ::1], float64[::1], float64[:, :, :, ::1])', **_COMPILE)
 def harmonic_basis(t, omegas, basis):
     """``basis`` (V, W, T, 3) = ``1, cos(w t), sin(w t)`` of every series' times ``t`` (V, T)
     and frequency ``omegas`` (W,): :func:`~cloe_ros.core.anticipation.harmonic_fits_batch`'s
@@ -558,8 +598,8 @@ def harmonic_basis(t, omegas, basis):
                 basis[v, w, i, 2] = np.sin(wt)
 
 
-@njit('void(float64[:, :, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1],'
-      ' float64[:, :, ::1])', **_COMPILE)  # fmt: skip
+@_compiled('void(float64[:, :, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1],'
+           ' float64[:, :, ::1])', **_COMPILE)  # fmt: skip
 def harmonic_residuals(basis, coef, y, resid):
     """``resid`` (V, W, C) = the squared error of the fits ``basis @ coef`` (bases (V, W, T, 3),
     coefficients (V, W, 3, C)) to ``y`` (V, T, C), summed over the times: the numpy code's

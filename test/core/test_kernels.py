@@ -112,3 +112,29 @@ def test_the_kernels_loaded_under_another_name_leave_the_packages_cache_alone(tm
                               capture_output=True, text=True, timeout=300)  # fmt: skip
         assert done.returncode == 0, done.stderr[-2000:]
     assert any((tmp_path / 'cache').rglob('*.nbi'))  # (the package's import did cache)
+
+
+def test_the_kernels_compile_without_a_cache_where_numba_cannot_have_one(tmp_path):
+    """Where numba has no writable folder for its cache (the package read-only, and so the
+    user's cache folder), the kernels compile without it, with one warning, instead of failing
+    the import (numba raises 'no locator available'). Seen as a user without a writable home
+    on a read-only copy of the package; a root test process can write anywhere, so numba's
+    refusal is reproduced where it is raised."""
+    code = (
+        'import warnings\n'
+        'from numba.core import dispatcher\n'
+        'def refuse(self):\n'
+        '    raise RuntimeError("cannot cache function: no locator available for file")\n'
+        'dispatcher.Dispatcher.enable_caching = refuse\n'
+        'with warnings.catch_warnings(record=True) as caught:\n'
+        '    warnings.simplefilter("always")\n'
+        '    import cloe_ros.core.kernels as k\n'
+        'import numpy as np\n'
+        'print(k._CACHED, sum("cannot cache" in str(w.message) for w in caught),\n'
+        '      k.einsum_dot(np.ones(3), np.arange(3.0)))\n'
+    )  # fmt: skip
+    env = {**os.environ, 'PYTHONPATH': str(REPO)}
+    done = subprocess.run([sys.executable, '-c', code], env=env, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ['False', '1', '3.0']

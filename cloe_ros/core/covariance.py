@@ -289,18 +289,12 @@ def odometry_covariance(zeta_hat: np.ndarray, variance: np.ndarray) -> tuple[np.
 
 
 def _odometry_covariance_one(zeta: np.ndarray, variance: np.ndarray) -> tuple[np.ndarray, ...]:
-    pose, twist = odometry_covariance_floats(zeta, variance)
-    return np.array(pose).reshape(6, 6), np.array(twist).reshape(6, 6)
-
-
-def odometry_covariance_floats(zeta, variance) -> tuple[list[float], list[float]]:
-    """:func:`odometry_covariance` of one state (12,) as two row-major lists of 36 floats, by
-    scalar arithmetic (each ``cloe/state`` message is one): ``R^T diag R`` and ``T diag T^T``
-    written out, each symmetric pair computed once
-    (:func:`~cloe_ros.core.kernels.state_message`)."""
+    """:func:`odometry_covariance` of one state (12,), by scalar arithmetic in one compiled call
+    (:func:`~cloe_ros.core.kernels.state_message`: ``R^T diag R`` and ``T diag T^T`` written
+    out, each symmetric pair computed once)."""
     from cloe_ros.core import kernels  # (numba: imported by the paths that write states)
 
     out = np.empty(85)
     kernels.state_message(np.asarray(zeta, dtype=float), np.asarray(variance, dtype=float),
                           True, out)  # fmt: skip
-    return out[7:43].tolist(), out[49:85].tolist()
+    return out[7:43].reshape(6, 6).copy(), out[49:85].reshape(6, 6).copy()

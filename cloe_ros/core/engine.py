@@ -991,16 +991,11 @@ class VehicleEngine:
             self._t_ns = step.t_ns
             self._last_r = step.used
             self._track_offsets(step.zeta, step.used)
-            if outputs is None:
-                est, i = row_of(self._est)
-                values = (*est.zeta_hat[i].tolist(), *est.theta_hat[i].tolist())
-                finite, row = all(map(math.isfinite, values)), None
-            else:
-                finite, row = bool(outputs[0].finite[outputs[1]]), outputs[0].row(outputs[1])
-            if not finite:
+            batch, k = self._own_outputs() if outputs is None else outputs
+            if not batch.finite[k]:
                 raise FloatingPointError('non-finite estimate')
             out.append(self._estimate(step.t_ns, step.zeta, step.r, step.used, variance, defer,
-                                      row))  # fmt: skip
+                                      batch.row(k)))  # fmt: skip
         except NUMERICAL_FAILURES:
             # a diverged estimator never publishes: start over on the next step's data
             self._diverged(step.t_ns)
@@ -1032,17 +1027,11 @@ class VehicleEngine:
         estimator stepped with (the same unless a channel is not tracked); ``variance`` the
         error statistics' update if made already (see :meth:`complete_step`); ``row`` the
         estimator's outputs for this vehicle if gathered already (:meth:`StepOutputs.row`),
-        else they are copied out of the estimator."""
+        else they are taken from the estimator."""
         used = r if used is None else used
         if row is None:
-            est, i = row_of(self._est)
-            ident = getattr(est, 'identifier', None)
-            model_theta, model_coupling = est.model
-            row = (est.zeta_hat[i].copy(), est.theta_hat[i].copy(), est.gain_l[i].copy(),
-                   est.coupling[i].copy(), None if ident is None else (
-                       ident.excitation[i].copy(), ident.uncertainty[i].copy(),
-                       ident.status[i].copy()),
-                   (model_theta[i].copy(), model_coupling[i].copy()))  # fmt: skip
+            batch, k = self._own_outputs()
+            row = batch.row(k)
         zeta_hat, theta_hat, gain_l, coupling, identification, model = row
         e = Estimate(t_ns, zeta_hat, theta_hat, gain_l, zeta, r, coupling=coupling,
                      identification=identification, model=model, trust=self._trust)
@@ -1069,6 +1058,12 @@ class VehicleEngine:
                 else:
                     self._predict(e)
         return e
+
+    def _own_outputs(self) -> tuple[StepOutputs, int]:
+        """This vehicle's estimator outputs, gathered alone (:class:`StepOutputs`), and its
+        index among them."""
+        est, i = row_of(self._est)
+        return StepOutputs(est, np.array([i])), 0
 
     def take_deferred(self) -> Estimate | None:
         """The estimate whose prediction :meth:`complete_step` left to the caller (None if

@@ -38,20 +38,21 @@ import numpy as np
 from numba import njit, types
 from numba.core.errors import NumbaError
 
-_COMPILE = dict(nogil=True, error_model='numpy')  # x / 0 gives inf or nan
-
 # The cache holds machine code by this file's path, and what it pickles names the module: this
 # file loaded under another name (a script's importlib, a checker) would leave entries that the
 # package's own import then fails to load. Only the package's module reads and writes it.
 _CACHED = __name__ == 'cloe_ros.core.kernels'
 
 
-def _compiled(signature, **options):
-    """``numba.njit(signature, **options)``, with numba's cache where it can have one. Where it
+def _compiled(signature):
+    """``numba.njit(signature)``, without the GIL, with numpy's errors (``x / 0`` gives inf or
+    nan, not an exception) and with numba's cache where it can have one. Where it
     cannot (no writable folder for it: the package's read-only, and so the user's cache folder,
     with no ``NUMBA_CACHE_DIR``; or an entry it cannot load), the kernels compile without it, in
     every process that imports them (a few seconds, still before any message), and one warning
     says so."""
+
+    options = dict(nogil=True, error_model='numpy')
 
     def decorate(func):
         global _CACHED
@@ -76,7 +77,7 @@ _F2 = 'float64[:, ::1]'
 _I1 = 'intp[::1]'
 
 
-@_compiled(f'float64({_F1}, {_F1})', **_COMPILE)
+@_compiled(f'float64({_F1}, {_F1})')
 def einsum_dot(a, b):
     """``np.einsum('j,j->', a, b)`` as numpy's x86-64 baseline (two-lane) loop adds it: two
     lanes, the even and the odd terms; blocks of eight terms taken from their last pair; then
@@ -96,7 +97,7 @@ def einsum_dot(a, b):
     return even + odd
 
 
-@_compiled(f'intp({_F1}, float64)', **_COMPILE)
+@_compiled(f'intp({_F1}, float64)')
 def _count_not_after(t, x):
     """How many of the increasing ``t`` are <= ``x``: ``np.searchsorted(t, x, 'right')``."""
     low, high = 0, t.shape[0]
@@ -109,7 +110,7 @@ def _count_not_after(t, x):
     return low
 
 
-@_compiled(f'void({_F1}, float64[:, :], float64, {_I1}, float64[::1])', **_COMPILE)
+@_compiled(f'void({_F1}, float64[:, :], float64, {_I1}, float64[::1])')
 def _interp_into(t, data, x, channels, out):
     """``data`` (T, C) sampled at ``t`` (T,), at ``x`` (in the span), for ``channels``, into
     ``out``: the arithmetic of ``np.interp`` (a sample's own time, and the ends, give the
@@ -125,7 +126,7 @@ def _interp_into(t, data, x, channels, out):
         out[c] = (data[j + 1, channels[c]] - d0) / dt * (x - t[j]) + d0
 
 
-@_compiled(f'void({_F1}, float64[:, :], {_F1}, {_I1}, {_F2})', **_COMPILE)
+@_compiled(f'void({_F1}, float64[:, :], {_F1}, {_I1}, {_F2})')
 def interpolate(t, data, times, channels, out):
     """``out`` (M, C) = ``data`` (T, C) sampled at the increasing ``t`` (T,), interpolated at
     ``times`` (M,) for ``channels`` (C,) as ``np.interp`` does; NaN outside the span (1e-9 s
@@ -141,8 +142,7 @@ def interpolate(t, data, times, channels, out):
 
 @_compiled(
     f'intp({_F1}, float64[:, :, :, ::1], {_F1}, float64, float64, {_F1}, float64[:, :], {_I1},'
-    f' float64[:, :, ::1], boolean[::1], float64, {_I1}, {_F1}, {_I1}, {_F2})',
-    **_COMPILE,
+    f' float64[:, :, ::1], boolean[::1], float64, {_I1}, {_F1}, {_I1}, {_F2})'
 )
 def score_ensemble(pending_t, pending, offsets, since, now, t, data, channels, cross, scored,
                    alpha, slots, issued, horizons, squared):  # fmt: skip
@@ -212,7 +212,7 @@ _IV_FILTER = (
 )
 
 
-@_compiled(_IV_FILTER, **_COMPILE)
+@_compiled(_IV_FILTER)
 def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, hist_count,
               aux_ad, aux_bd, x_aux, last_r, aux_shift, fx, cf, df, cd, dd, ad_t, bd,
               state_scale, reference_scale, phi_c, phi_a, xi_c, xi_a, mask, yf_c, yf_a, yd_c,
@@ -276,7 +276,7 @@ def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, his
                        + d[n, yd_c[p]] * yd_a[p]) * gate[n, p] * weight[n]  # fmt: skip
 
 
-@_compiled(f'void({_F2}, {_F2})', **_COMPILE)
+@_compiled(f'void({_F2}, {_F2})')
 def _transpose(a, out):
     """``out`` (M, N) = ``a`` (N, M) transposed."""
     for n in range(a.shape[0]):
@@ -294,7 +294,7 @@ _IV_SHORT = (
 )
 
 
-@_compiled(_IV_SHORT, **_COMPILE)
+@_compiled(_IV_SHORT)
 def iv_short_window(phi, xi, y, rows, left, right, h, mu_e, weight, short, res2, weight_e,
                     steps, increments, phi_t, xi_t):  # fmt: skip
     """The short-window statistics of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`,
@@ -335,7 +335,7 @@ _IV_LONG = (
 )
 
 
-@_compiled(_IV_LONG, **_COMPILE)
+@_compiled(_IV_LONG)
 def iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs, forget):
     """The long-window normal equations of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`
     in its order: forgotten by ``mu`` only where the row is excited, ``xi phi^T h`` and ``xi
@@ -368,8 +368,7 @@ ODOMETRY_OK, NON_FINITE, BAD_QUATERNION, BAD_POSITION, BAD_VELOCITY, BAD_RATE, B
 
 
 @_compiled(types.intp(_RO, _RO, _RO, _RO, types.float64, types.float64, types.float64,
-                      types.float64, types.float64, types.float64[::1], types.float64[::1]),
-           **_COMPILE)  # fmt: skip
+                      types.float64, types.float64, types.float64[::1], types.float64[::1]))
 def odometry_state(position, orientation, linear, angular, quaternion_tolerance, max_position,
                    max_speed, max_rate, max_tilt, zeta, detail):  # fmt: skip
     """The checks of an odometry sample, in order, and its state: returns the first problem
@@ -424,13 +423,13 @@ def odometry_state(position, orientation, linear, angular, quaternion_tolerance,
     return ODOMETRY_OK
 
 
-@_compiled(types.void(_RO, _RO, types.boolean, types.float64[::1]), **_COMPILE)
+@_compiled(types.void(_RO, _RO, types.boolean, types.float64[::1]))
 def state_message(zeta, variance, with_variance, out):
     """The 85 doubles of ``cloe/state`` (an Odometry, in field order: position, orientation,
     pose covariance, body velocity, body rates, twist covariance) of the state ``zeta`` (12,)
     and, ``with_variance``, its error ``variance`` (12,) (zeros without): the arithmetic of
-    :func:`~cloe_ros.core.kinematics.state_to_odometry_floats` and
-    :func:`~cloe_ros.core.covariance.odometry_covariance_floats`."""
+    :func:`~cloe_ros.core.kinematics.state_to_odometry` and
+    :func:`~cloe_ros.core.covariance.odometry_covariance`."""
     x, vx, pitch, dpitch, y, vy, roll, droll, yaw, dyaw, z, vz = (
         zeta[0], zeta[1], zeta[2], zeta[3], zeta[4], zeta[5], zeta[6], zeta[7], zeta[8],
         zeta[9], zeta[10], zeta[11])  # fmt: skip
@@ -494,7 +493,7 @@ def state_message(zeta, variance, with_variance, out):
 
 
 @_compiled(f'void({_F2}, {_F2}, {_F2}, {_I1}, {_F1}, {_I1}, {_I1}, {_I1}, {_F2}, {_F2}, {_F2},'
-           f' {_F2}, {_F2})', **_COMPILE)  # fmt: skip
+           f' {_F2}, {_F2})')  # fmt: skip
 def observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_starts,
                    last_rows, w, phi, grad, rows, f):  # fmt: skip
     """:func:`~cloe_ros.core.estimator.observer_drift` in its order: ``f = A(Theta) zeta_hat +
@@ -527,7 +526,7 @@ def observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_
             f[n, i] = f[n, i] + add
 
 
-@_compiled(f'void({_F2}, {_F2}, {_F2}, {_F2}, float64, {_F2}, boolean, {_F2}, {_F2})', **_COMPILE)
+@_compiled(f'void({_F2}, {_F2}, {_F2}, {_F2}, float64, {_F2}, boolean, {_F2}, {_F2})')
 def observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, sliding, exponents, e):
     """:func:`~cloe_ros.core.estimator.observer_update` in its order: with ``sliding``, the term
     ``lambda_ |e|^exponents sign(e)`` added to ``f``; then ``zeta_hat+ = (zeta_hat + h (L zeta +
@@ -544,7 +543,7 @@ def observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, sliding, exponents, e
 
 @_compiled(f'void({_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, float64, float64,'
            f' float64, float64, float64, float64, {_I1}, {_I1}, {_F1}, {_I1}, {_I1}, {_F1}, {_I1},'
-           f' {_I1}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2})', **_COMPILE)  # fmt: skip
+           f' {_I1}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2})')  # fmt: skip
 def iv_observer(zeta, zeta_hat, theta, coupling, r, model_error, gain_l, lambda_, exponents, h,
                 gamma_d, l_leak, gamma_l, l_min, l_max, coupled_rows, coupled_cols,
                 paper_coupling, unknown, known_c, known_a, regressor_index, block_starts, e, w,
@@ -582,7 +581,7 @@ def iv_observer(zeta, zeta_hat, theta, coupling, r, model_error, gain_l, lambda_
 # --------------------------------------------------------------------------- the intent's fits
 
 
-@_compiled('void(float64[:, ::1], float64[::1], float64[:, :, :, ::1])', **_COMPILE)
+@_compiled('void(float64[:, ::1], float64[::1], float64[:, :, :, ::1])')
 def harmonic_basis(t, omegas, basis):
     """``basis`` (V, W, T, 3) = ``1, cos(w t), sin(w t)`` of every series' times ``t`` (V, T)
     and frequency ``omegas`` (W,): :func:`~cloe_ros.core.anticipation.harmonic_fits_batch`'s
@@ -599,13 +598,13 @@ def harmonic_basis(t, omegas, basis):
 
 
 @_compiled('void(float64[:, :, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1],'
-           ' float64[:, :, ::1])', **_COMPILE)  # fmt: skip
+           ' float64[:, :, ::1])')  # fmt: skip
 def harmonic_residuals(basis, coef, y, resid):
     """``resid`` (V, W, C) = the squared error of the fits ``basis @ coef`` (bases (V, W, T, 3),
     coefficients (V, W, 3, C)) to ``y`` (V, T, C), summed over the times: the numpy code's
     ``np.sum((basis @ coef - y) ** 2, axis=-2)`` in its order (a three-term product added from
     its first term; the sum over the times, a reduction along a strided axis, from the first
-    time on)."""
+    time on: 0 plus the first square is that square)."""
     n_series, n_omegas, n_times, _ = basis.shape
     n_columns = y.shape[2]
     for v in range(n_series):
@@ -615,5 +614,5 @@ def harmonic_residuals(basis, coef, y, resid):
                 total = 0.0
                 for i in range(n_times):
                     e = (b[i, 0] * c[0, k] + b[i, 1] * c[1, k]) + b[i, 2] * c[2, k] - y[v, i, k]
-                    total = total + e * e if i else e * e
+                    total += e * e
                 resid[v, w, k] = total

@@ -210,17 +210,10 @@ def odometry_to_state_one(
 def state_to_odometry_one(
     zeta: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`state_to_odometry` for one state (12,), with scalar math."""
-    v = state_to_odometry_floats(zeta)
-    return np.array(v[:3]), np.array(v[3:7]), np.array(v[7:10]), np.array(v[10:])
-
-
-def state_to_odometry_floats(zeta) -> tuple[float, ...]:
-    """:func:`state_to_odometry_one` as 13 floats: position (3), quaternion (x, y, z, w), body
-    velocity (3), body rates (3), the order of an Odometry message's fields (by scalar
-    arithmetic, :func:`~cloe_ros.core.kernels.state_message`)."""
+    """:func:`state_to_odometry` for one state (12,), by scalar arithmetic in one compiled call
+    (:func:`~cloe_ros.core.kernels.state_message`)."""
     from cloe_ros.core import kernels  # (numba: imported by the paths that write states)
 
     out = np.empty(85)
     kernels.state_message(np.asarray(zeta, dtype=float), out[:12], False, out)
-    return (*out[:7].tolist(), *out[43:49].tolist())
+    return out[0:3].copy(), out[3:7].copy(), out[43:46].copy(), out[46:49].copy()

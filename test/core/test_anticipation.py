@@ -376,17 +376,3 @@ def test_a_request_that_fails_fails_only_its_own_steps():
     assert values[0] == values[2] == 'fitted'
     assert isinstance(values[1], ValueError)
 
-
-def test_the_compiled_kernels_are_compiled_at_import_and_never_at_a_call():
-    """Every kernel has its one signature compiled when the module is imported, so no message
-    waits on a compile; a call with other types is refused rather than compiled."""
-    from cloe_ros.core import kernels
-
-    compiled = [k for k in vars(kernels).values() if hasattr(k, 'overloads')]
-    assert len(compiled) >= 3
-    for kernel in compiled:
-        assert len(kernel.overloads) == 1, kernel
-    with pytest.raises(TypeError):
-        kernels.interpolate(np.zeros(3, np.float32), np.zeros((3, 1)), np.zeros(2),
-                            np.zeros(1, np.intp), np.zeros((2, 1)))  # fmt: skip
-    assert all(len(k.overloads) == 1 for k in compiled)

@@ -1,6 +1,8 @@
 """The compiled kernels add in numpy's order: under the golden test's pinned kernels (numpy's
 baseline loops, OpenBLAS's Nehalem kernels), a kernel's sums equal numpy's bit for bit, so that
-replacing numpy code by a kernel leaves the golden outputs as they were."""
+replacing numpy code by a kernel leaves the golden outputs as they were. And they are compiled
+once, at import, into a cache that only the package's module uses, or without one where numba
+cannot have it."""
 
 from __future__ import annotations
 
@@ -9,12 +11,14 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from cloe_ros.core import kernels
 from test.golden_outputs import PINNED_KERNELS, REPO
 
 CHECK = r'''
 import numpy as np
+import pytest
 from cloe_ros.core import kernels
 from test.golden_outputs import check_pinned_kernels
 
@@ -138,3 +142,16 @@ def test_the_kernels_compile_without_a_cache_where_numba_cannot_have_one(tmp_pat
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split() == ['False', '1', '3.0']
+
+
+def test_the_compiled_kernels_are_compiled_at_import_and_never_at_a_call():
+    """Every kernel has its one signature compiled when the module is imported, so no message
+    waits on a compile; a call with other types is refused rather than compiled."""
+    compiled = [k for k in vars(kernels).values() if hasattr(k, 'overloads')]
+    assert len(compiled) >= 3
+    for kernel in compiled:
+        assert len(kernel.overloads) == 1, kernel
+    with pytest.raises(TypeError):
+        kernels.interpolate(np.zeros(3, np.float32), np.zeros((3, 1)), np.zeros(2),
+                            np.zeros(1, np.intp), np.zeros((2, 1)))  # fmt: skip
+    assert all(len(k.overloads) == 1 for k in compiled)

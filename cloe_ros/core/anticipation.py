@@ -204,13 +204,15 @@ class History:
         next append."""
         return getattr(self, column)[self.held]
 
-    def last(self, span: float | None = None) -> np.ndarray:
-        """Rows of the steps of the last ``span`` s (all held if None), oldest first."""
+    def last(self, span: float | None = None) -> slice:
+        """The rows of the steps of the last ``span`` s (all held if None), oldest first, as a
+        slice (reads are views; the times are increasing, a time jump clears the history)."""
         held = self.held
-        idx = np.arange(held.start, held.stop)
-        if span is not None and len(idx):
-            idx = idx[self.t[idx] >= self.t[idx[-1]] - span - 1e-9]
-        return idx
+        if span is None or held.stop == held.start:
+            return held
+        t = self.t[held]
+        first = int(np.searchsorted(t, t[-1] - span - 1e-9, side='left'))
+        return slice(held.start + first, held.stop)
 
     def at(self, times: np.ndarray, column: str, channels) -> np.ndarray:
         """``column`` (a field name) interpolated at ``times`` (...,) for ``channels``:
@@ -234,8 +236,19 @@ def last_jump(r: np.ndarray, factor: float = 10.0, floor: float = 0.1) -> int:
     if len(r) < 3:
         return 0
     d = np.sqrt(np.sum(np.diff(r, axis=0) ** 2, axis=1))
-    big = np.flatnonzero(d > max(floor, factor * float(np.median(d))))
+    big = np.flatnonzero(d > max(floor, factor * median(d)))
     return int(big[-1] + 1) if len(big) else 0
+
+
+def median(x: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D ``x``, the same value (the middle entries of one
+    partition, averaged as numpy does; NaN if any is), without its generic reduction's cost."""
+    n = len(x)
+    k = n // 2
+    p = np.partition(x, (k, -1) if n % 2 else (k - 1, k, -1))
+    if np.isnan(p[-1]):
+        return math.nan
+    return float(p[k]) if n % 2 else (float(p[k - 1]) + float(p[k])) / 2.0
 
 
 def harmonic_fit(
@@ -330,7 +343,7 @@ class Intent:
         if np.count_nonzero(recent) >= 5 and t[recent][0] <= -0.5:
             out[1] = linear_fit(t[recent], r[recent], self.ahead)
         if len(t) >= 2 and t[0] <= -0.5 * self.window:
-            step = max(1, round(1.0 / (self.SUBSAMPLE_HZ * max(np.median(np.diff(t)), 1e-6))))
+            step = max(1, round(1.0 / (self.SUBSAMPLE_HZ * max(median(np.diff(t)), 1e-6))))
             ts, rs = t[::-1][::step][::-1], r[::-1][::step][::-1]  # (keeps the last sample)
             if len(ts) >= 10:
                 out[2], joint = yield HarmonicFits(ts, rs, self.ahead, self.OMEGAS, XY)
@@ -731,6 +744,7 @@ class ReferenceTrust:
         self.e_ref = np.full(4, np.nan)
         self.e_free = np.full(4, np.nan)
         self.followed = np.ones(4, dtype=bool)  # by the replay test
+        self.all_followed = True  # (read at every step: kept beside followed)
         self.grounded = False
         self._last_t: float | None = None
 
@@ -738,6 +752,7 @@ class ReferenceTrust:
         self.e_ref[:] = np.nan
         self.e_free[:] = np.nan
         self.followed[:] = True
+        self.all_followed = True
         self.grounded = False
         self._last_t = None
 
@@ -757,6 +772,7 @@ class ReferenceTrust:
         bad = (self.e_ref > ratio2 * self.e_free) & (self.e_ref > floor2)
         good = (self.e_ref <= ratio2 * self.e_free) | (self.e_ref < floor2 / 4.0)
         self.followed = np.where(bad, False, np.where(good, True, self.followed))
+        self.all_followed = bool(self.followed.all())
 
     def set_commanded_altitude(self, z_d: float) -> None:
         ground = self.config.ground_altitude
@@ -953,7 +969,7 @@ class Anticipator:
         vehicle commanded to the ground keeps its logged reference here; the identifier pauses
         for it anyway.)"""
         followed = self.trust.followed
-        if followed.all():
+        if self.trust.all_followed:
             return r, followed
         out = r.copy()
         virtual = self.virtual.of(zeta)
@@ -1059,7 +1075,7 @@ class Anticipator:
         candidates = None
         if plan is not None:
             path = np.array(plan, float)
-        elif self.config.intent and len(idx) >= 2:
+        elif self.config.intent and len(logged) >= 2:
             candidates = yield from self.intent.candidates_steps(hist.t[idx], logged)
             w = yield from self.intent_scores.weights_steps()  # (K, M)
             path = np.einsum('km,mkc->kc', w, candidates)
@@ -1085,8 +1101,8 @@ class Anticipator:
         paths[1] = turn_positions(measured, coupling, self.poses)
         paths[2] = measured[POSITION] + np.outer(self.poses, measured[VELOCITY])
         paths[3] = measured[POSITION]
-        recent = hist.last(cfg.centroid_window)
-        paths[4] = (hist.measured[recent][:, POSITION].mean(axis=0) if len(recent)
+        recent = hist.measured[hist.last(cfg.centroid_window)]
+        paths[4] = (recent[:, POSITION].mean(axis=0) if len(recent)
                     else measured[POSITION])  # fmt: skip
         trust = self.trust.status()
         allowed = np.ones(len(CANDIDATES), dtype=bool)

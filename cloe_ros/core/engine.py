@@ -273,11 +273,14 @@ def seconds(stamp_ns: int) -> str:
     return f'{sec}.{nsec:09d} s'
 
 
-def _near(position: np.ndarray, previous: np.ndarray, dt_ns: int) -> bool:
-    """Whether a quadrotor can be at ``position`` ``dt_ns`` after ``previous``."""
+def _near(position, previous, dt_ns: int) -> bool:
+    """Whether a quadrotor can be at ``position`` (x, y, z) ``dt_ns`` after ``previous``
+    (x, y, z). (Scalar math: it runs for every sample.)"""
     reach = POSITION_JUMP + MAX_SPEED * abs(dt_ns) / NS
-    d = np.asarray(position, float) - previous
-    return float(d @ d) <= reach * reach
+    dx = float(position[0]) - float(previous[0])
+    dy = float(position[1]) - float(previous[1])
+    dz = float(position[2]) - float(previous[2])
+    return dx * dx + dy * dy + dz * dz <= reach * reach
 
 
 #: Numerical failures of a step (the estimator restarts, counted as ``diverged``).
@@ -512,7 +515,7 @@ class VehicleEngine:
                     'previous one')  # fmt: skip
             if dt > self._held_gap(self._interval_ns):
                 return self._hold(sample, 'gap')
-            if not _near(sample.position, previous[[0, 4, 10]], dt):
+            if not _near(sample.position, (previous[0], previous[4], previous[10]), dt):
                 return self._hold(sample, 'position jump')
             self._interval_ns = dt if self._interval_ns is None else (
                 self._interval_ns + 0.05 * (dt - self._interval_ns))  # fmt: skip
@@ -1011,7 +1014,7 @@ class VehicleEngine:
         if self._anticipator is None or self._trust is None:
             return r, None
         used, tracked = self._anticipator.reference_for_estimator(zeta, r)
-        return used, None if tracked.all() else tracked
+        return used, None if self._anticipator.trust.all_followed else tracked
 
     def _diverged(self, t_ns: int | None) -> None:
         """The estimator failed numerically at ``t_ns``: count it, restart at the next step."""

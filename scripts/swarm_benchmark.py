@@ -9,8 +9,11 @@ then by one ``cloe_inference`` node (the installed package, cloe_iv, ``vehicles`
 Printed per run: messages received of those sent, CPU time of the receiving process per message
 (from /proc), and for the node the share of the odometry that became a published ``cloe/state``
 and the latency of the states of the first vehicle (wall clock at reception minus stamp, p50 and
-p99). Speeds depend on the machine and its load: compare the node's column with the floor's in
-the same run (EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set.
+p99), and what the node says of its load in /diagnostics: how many reports it published, the
+median of their ``busy`` (the share of wall time in its callbacks; WARN from 0.8) and the largest
+``late_s`` (how late its steady timer ran; WARN from 0.5 s). Speeds depend on the machine and its
+load: compare the node's column with the floor's in the same run (EVALUATION.md, section 4).
+Uses ROS_DOMAIN_ID 91 unless one is set.
 
     .venv/bin/python scripts/swarm_benchmark.py --offline bags/position [--repeat 3]
 
@@ -120,13 +123,16 @@ def floor(n: int, duration: float) -> None:
 
 
 def listen(n: int, watch: str) -> None:
-    """Counts the node's states of every vehicle; latency of the first vehicle's."""
+    """Counts the node's states of every vehicle; latency of the first vehicle's; the node's
+    own ``busy`` share from its /diagnostics."""
     import numpy as np
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from rclpy.experimental import EventsExecutor
 
     from cloe_ros.io import cdr
+    from cloe_ros.io.messages import decode_diagnostics
     from cloe_ros.ros.common import qos
 
     rclpy.init()
@@ -141,6 +147,19 @@ def listen(n: int, watch: str) -> None:
     def other(_raw: bytes) -> None:
         count[0] += 1
 
+    busy: list[float] = []
+    late: list[float] = [0.0]
+
+    def diagnostics(raw: bytes) -> None:
+        for status in decode_diagnostics(raw)[1]:
+            if status.name == 'cloe_inference':
+                values = dict(status.values)
+                busy.append(float(values['busy']))
+                late.append(float(values['late_s']))
+
+    node.create_subscription(DiagnosticArray, '/diagnostics', diagnostics, qos(depth=100),
+                             raw=True)  # fmt: skip
+
     for k in range(n):
         node.create_subscription(Odometry, f'/uav{k}/cloe/state', first if k == 0 else other,
                                  qos(depth=1000), raw=True)  # fmt: skip
@@ -152,7 +171,11 @@ def listen(n: int, watch: str) -> None:
     while time.monotonic() < end:
         executor.spin_once(timeout_sec=0.1)
     p50, p99 = (np.percentile(lat, [50, 99]) if lat else (math.nan, math.nan))
-    print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f}', flush=True)
+    # (the node's first report covers its start-up, its last the end of the load: left out)
+    during = busy[1:-1] or busy
+    share = float(np.median(during)) if during else math.nan
+    print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f} busy {share:.3f} '
+          f'late {max(late):.3f} reports {len(busy)}', flush=True)  # fmt: skip
     node.destroy_node()
     rclpy.shutdown()
 
@@ -193,7 +216,9 @@ def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None =
         result['received'] = int(procs['rx'].communicate()[0].split()[-1])
     else:
         words = procs['listen'].communicate()[0].split()
-        result.update(states=int(words[1]), p50=float(words[3]), p99=float(words[5]))
+        result.update(states=int(words[1]), p50=float(words[3]), p99=float(words[5]),
+                      busy=float(words[7]), late=float(words[9]),
+                      reports=int(words[11]))  # fmt: skip
         procs['rx'].terminate()
         procs['rx'].wait(30)
     return result
@@ -264,8 +289,9 @@ def main() -> int:
     import tempfile
 
     print('| vehicles | do-nothing subscriber: received, CPU per message | cloe_inference: '
-          'states of odometry, CPU per message, ratio to the floor, latency p50 / p99 |')
-    print('|---|---|---|')
+          'states of odometry, CPU per message, ratio to the floor, latency p50 / p99 | '
+          "the node's /diagnostics: reports, busy (median), late (max) |")
+    print('|---|---|---|---|')
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.vehicles:
             f = run(n, args.duration, 'floor', Path(tmp))
@@ -275,7 +301,8 @@ def main() -> int:
             node_us = 1e6 * c['cpu_s'] / c['sent']
             print(f"| {n} | {f['received']} of {f['sent']}, {floor_us:.0f} us | "
                   f"{c['states']} of {odom} ({100 * c['states'] / odom:.0f} %), {node_us:.0f} us, "
-                  f"{node_us / floor_us:.1f}x, {1e3 * c['p50']:.0f} / {1e3 * c['p99']:.0f} ms |",
+                  f"{node_us / floor_us:.1f}x, {1e3 * c['p50']:.0f} / {1e3 * c['p99']:.0f} ms | "
+                  f"{c['reports']}, {c['busy']:.2f}, {c['late']:.1f} s |",
                   flush=True)  # fmt: skip
     return 0
 

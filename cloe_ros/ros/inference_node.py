@@ -73,6 +73,62 @@ OUTPUT_TYPES = {
 INPUTS = ('odom', 'reference', 'reference_plan')
 #: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
 STALE_AFTER = 2.0
+#: The node's status turns WARN when, over a diagnostics period, its input and batch callbacks
+#: took this share of the wall time (at its limit), or its steady timer ran this late, s (behind
+#: its inputs); see :class:`Load`.
+BUSY_WARN = 0.8
+LATE_WARN = 0.5
+
+
+class Load:
+    """How loaded the node's thread is, between two readings:
+
+    * ``busy``: the wall time its timed callbacks (inputs and batches) took, as a share of the
+      wall time. The executor's own work (taking the messages) is not in it, so a node at its
+      limit reads about 0.85 to 0.9, not 1. Wall time: a node slowed by other processes on its
+      core counts as busy too.
+    * ``late``: how late a steady-clock timer of the node ran at worst, s. rclpy's
+      EventsExecutor queues a timer's turn behind the messages already waiting, so a node
+      behind its inputs runs its timers as late as its inputs wait: its states are that stale,
+      and what the subscriptions' histories overwrite meanwhile is missed (each vehicle's
+      ``odom_missing``).
+    """
+
+    def __init__(self) -> None:
+        self.seconds = 0.0  # in the timed callbacks, since the start
+        self._read = (time.perf_counter(), 0.0)
+        self._tick: float | None = None  # the last heartbeat
+        self._late = 0.0  # the worst lateness since the last reading
+
+    def timed(self, fn):
+        """``fn`` with its wall time added to :attr:`seconds`."""
+        clock = time.perf_counter
+
+        @functools.wraps(fn)
+        def timed(*args):
+            t0 = clock()
+            try:
+                return fn(*args)
+            finally:
+                self.seconds += clock() - t0
+
+        return timed
+
+    def heartbeat(self, period: float, now: float | None = None) -> None:
+        """A steady timer of ``period`` s ran (at ``now``, ``time.perf_counter()`` if None)."""
+        now = time.perf_counter() if now is None else now
+        if self._tick is not None:
+            self._late = max(self._late, now - self._tick - period)
+        self._tick = now
+
+    def read(self) -> tuple[float, float]:
+        """``(busy, late)`` since the last reading (since the start for the first); busy in
+        [0, 1], late in s (0 when on time)."""
+        now, then = time.perf_counter(), self._read
+        self._read = (now, self.seconds)
+        busy = min(1.0, max(0.0, (self.seconds - then[1]) / max(now - then[0], 1e-9)))
+        late, self._late = max(self._late, 0.0), 0.0
+        return busy, late
 
 
 class InferenceNode(Node):
@@ -111,6 +167,8 @@ class InferenceNode(Node):
         self.lost: dict[str, dict[str, int]] = {}  # per vehicle and input: DDS message_lost
         self._in_qos, self._out_qos = in_qos, out_qos
         self._started = time.monotonic()
+        self.load = Load()
+        self._load = (0.0, 0.0)  # (busy, late) over the last diagnostics period
         # per vehicle: the inputs without a publisher, and since when (wall, monotonic)
         self._missing: dict[str, list[str]] = {}
         self._missing_since: dict[str, float] = {}
@@ -121,11 +179,13 @@ class InferenceNode(Node):
                 self._add_vehicle(v)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._batch_timer = (
-            self.create_timer(self.batch_period, self._step_waiting, clock=steady)
+            self.create_timer(self.batch_period, self.load.timed(self._step_waiting),
+                              clock=steady)
             if self.batch_period > 0 else None
         )  # fmt: skip
+        self.discovery_period = declared['discovery_period']
         self._graph_timer = self.create_timer(
-            declared['discovery_period'], self._poll_graph, clock=steady
+            self.discovery_period, self._poll_graph, clock=steady
         )
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
@@ -261,7 +321,7 @@ class InferenceNode(Node):
                 message_lost=functools.partial(self._on_lost, v, name),
             )
             self.create_subscription(
-                msgtype, vehicle_topic(v, name), callback, self._in_qos, raw=True,
+                msgtype, vehicle_topic(v, name), self.load.timed(callback), self._in_qos, raw=True,
                 event_callbacks=events,
             )  # fmt: skip
         for topic, msgtype in self.encoders[v].topics.items():
@@ -304,7 +364,8 @@ class InferenceNode(Node):
         """On a steady-clock timer: take up the vehicles discovery finds (``discover``), and
         check that every vehicle has publishers of odom and reference; warn of a vehicle without
         them for ``publisher_timeout`` (with a hint when the un-namespaced vehicle waits while
-        namespaced ones fly)."""
+        namespaced ones fly). Also the heartbeat of :attr:`load`."""
+        self.load.heartbeat(self.discovery_period)
         now = time.monotonic()
         topics = self.get_topic_names_and_types()
         if self.discover:
@@ -596,8 +657,9 @@ class InferenceNode(Node):
         return Status(level, f'{self.get_name()}: {ns}', message, ns, tuple(values))
 
     def node_status(self) -> Status:
-        """The node's own status: which vehicles it infers (its shard), and those without
-        publishers for ``publisher_timeout``."""
+        """The node's own status: which vehicles it infers (its shard), those without
+        publishers for ``publisher_timeout``, and its load over the last diagnostics period
+        (WARN from ``BUSY_WARN`` or ``LATE_WARN``: at its limit, or behind its inputs)."""
         now = time.monotonic()
         silent = [self.vehicle_ns[v] for v in self.vehicles if self._missing.get(v)
                   and now - self._missing_since.get(v, now) >= self.publisher_timeout]  # fmt: skip
@@ -609,6 +671,14 @@ class InferenceNode(Node):
             message += ', discovering'
         if silent:
             message += '; without publishers: ' + ', '.join(silent)
+        busy, late = self._load
+        loaded = busy >= BUSY_WARN or late >= LATE_WARN
+        if late >= LATE_WARN:
+            message += f'; behind its inputs by up to {late:.1f} s (its timer ran that late)'
+        if busy >= BUSY_WARN:
+            message += f'; busy {busy:.0%} of the time: at its limit'
+        if loaded:
+            message += ', states come late or are missed (fewer vehicles per node: shard_count)'
         values = (
             ('vehicles', ' '.join(names)),
             ('vehicle_count', str(len(names))),
@@ -616,8 +686,10 @@ class InferenceNode(Node):
             ('shard_index', str(self.shard_index)),
             ('shard_count', str(self.shard_count)),
             ('without_publishers', ' '.join(silent)),
+            ('busy', f'{busy:.3f}'),
+            ('late_s', f'{late:.3f}'),
         )
-        level = messages.WARN if silent else messages.OK
+        level = messages.WARN if silent or loaded else messages.OK
         return Status(level, self.get_name(), message, self.get_fully_qualified_name(), values)
 
     def _publish_diagnostics(self) -> None:
@@ -630,6 +702,7 @@ class InferenceNode(Node):
                 self.vehicle_status(v, (engine.stats.steps - steps_prev.get(v, 0)) / dt)
             )
         self._last_diag = (now, {v: e.stats.steps for v, e in self.engines.items()})
+        self._load = self.load.read()
         statuses.append(self.node_status())
         stamp = self.get_clock().now().nanoseconds
         self.diagnostics_pub.publish(encode_diagnostics(stamp, statuses))

@@ -305,6 +305,70 @@ def test_discovery_takes_up_vehicles_that_appear_and_reports_those_that_fall_sil
             n.destroy_node()
 
 
+def test_load_is_the_share_of_wall_time_in_callbacks_and_the_worst_timer_delay():
+    import time
+
+    from cloe_ros.ros.inference_node import Load
+
+    load = Load()
+    nap = load.timed(lambda s: time.sleep(s) or 'slept')
+    assert nap(0.05) == 'slept' and load.seconds >= 0.05
+    busy, late = load.read()
+    assert 0.0 < busy <= 1.0 and late == 0.0
+    assert load.read() == (0.0, 0.0)  # nothing ran since the last reading
+    with pytest.raises(ZeroDivisionError):  # what a callback raises goes through
+        load.timed(lambda: 1 / 0)()
+    for now in (10.0, 11.0, 12.25, 13.0):  # a 1 s timer, once 0.25 s late
+        load.heartbeat(1.0, now)
+    assert load.read()[1] == 0.25
+    load.heartbeat(1.0, 16.5)  # 2.5 s late
+    assert load.read()[1] == 2.5 and load.read()[1] == 0.0
+
+
+def test_a_node_at_its_limit_says_so_and_recovers(context):
+    """Each odometry message is made to take 0.1 s of the node's callback (a sleep, so the share
+    is the same on any machine) and one arrives at every turn of the executor: the node runs its
+    callbacks back to back, and its own status turns WARN, busy at its limit. Once the messages
+    stop, the next period finds it idle and OK again."""
+    import time
+
+    from cloe_ros.ros.inference_node import BUSY_WARN
+
+    inf = _inference(context, vehicles=['/uav1'], diagnostics_period=0.5, batch_period=0.0)
+    helper = rclpy_node(context)
+    odom, _ = pubs = _vehicle_publishers(helper, '/uav1')
+    ex = _executor(context, inf, helper)
+    engine = inf.engines['/uav1']
+    accept = engine.add_odometry
+
+    def slow(sample):
+        time.sleep(0.1)
+        return accept(sample)
+
+    engine.add_odometry = slow
+    sent = [0]
+
+    def busy_reported() -> bool:
+        odom.publish(odometry(sent[0]))
+        sent[0] += 1
+        status = inf.node_status()
+        return status.level == 1 and 'busy' in status.message
+
+    try:
+        assert spin_until(ex, lambda: odom.get_subscription_count() >= 1, 30)
+        assert spin_until(ex, busy_reported, 60), inf.node_status()
+        status = inf.node_status()
+        assert float(dict(status.values)['busy']) >= BUSY_WARN, status
+        assert 'at its limit' in status.message and 'shard_count' in status.message
+        assert spin_until(ex, lambda: inf.node_status().level == 0, 60), inf.node_status()
+        assert float(dict(inf.node_status().values)['busy']) < BUSY_WARN
+    finally:
+        ex.shutdown()
+        del pubs
+        for n in (inf, helper):
+            n.destroy_node()
+
+
 def rclpy_node(context):
     import rclpy
 

@@ -169,6 +169,7 @@ class InferenceNode(Node):
         self._started = time.monotonic()
         self.load = Load()
         self._load = (0.0, 0.0)  # (busy, late) over the last diagnostics period
+        self._overloaded = False  # as that load said (logged when it changes)
         # per vehicle: the inputs without a publisher, and since when (wall, monotonic)
         self._missing: dict[str, list[str]] = {}
         self._missing_since: dict[str, float] = {}
@@ -672,13 +673,9 @@ class InferenceNode(Node):
         if silent:
             message += '; without publishers: ' + ', '.join(silent)
         busy, late = self._load
-        loaded = busy >= BUSY_WARN or late >= LATE_WARN
-        if late >= LATE_WARN:
-            message += f'; behind its inputs by up to {late:.1f} s (its timer ran that late)'
-        if busy >= BUSY_WARN:
-            message += f'; busy {busy:.0%} of the time: at its limit'
-        if loaded:
-            message += ', states come late or are missed (fewer vehicles per node: shard_count)'
+        overload = self._overload()
+        if overload:
+            message += '; ' + overload
         values = (
             ('vehicles', ' '.join(names)),
             ('vehicle_count', str(len(names))),
@@ -689,8 +686,21 @@ class InferenceNode(Node):
             ('busy', f'{busy:.3f}'),
             ('late_s', f'{late:.3f}'),
         )
-        level = messages.WARN if silent or loaded else messages.OK
+        level = messages.WARN if silent or overload else messages.OK
         return Status(level, self.get_name(), message, self.get_fully_qualified_name(), values)
+
+    def _overload(self) -> str:
+        """What the load of the last diagnostics period says, in words ('' if it is fine)."""
+        busy, late = self._load
+        words = []
+        if late >= LATE_WARN:
+            words.append(f'behind its inputs by up to {late:.1f} s (its timer ran that late)')
+        if busy >= BUSY_WARN:
+            words.append(f'busy {busy:.0%} of the time: at its limit')
+        if not words:
+            return ''
+        return '; '.join(words) + (', states come late or are missed (fewer vehicles per node: '
+                                   'shard_count)')  # fmt: skip
 
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
@@ -703,6 +713,12 @@ class InferenceNode(Node):
             )
         self._last_diag = (now, {v: e.stats.steps for v, e in self.engines.items()})
         self._load = self.load.read()
+        overload = self._overload()
+        if overload and not self._overloaded:
+            self.get_logger().warning(f'{len(self.vehicles)} vehicle(s): {overload}')
+        elif self._overloaded and not overload:
+            self.get_logger().info('keeps up with its inputs again')
+        self._overloaded = bool(overload)
         statuses.append(self.node_status())
         stamp = self.get_clock().now().nanoseconds
         self.diagnostics_pub.publish(encode_diagnostics(stamp, statuses))

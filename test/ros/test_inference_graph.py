@@ -325,11 +325,11 @@ def test_load_is_the_share_of_wall_time_in_callbacks_and_the_worst_timer_delay()
     assert load.read()[1] == 2.5 and load.read()[1] == 0.0
 
 
-def test_a_node_at_its_limit_says_so_and_recovers(context):
+def test_a_node_at_its_limit_says_so_and_recovers(context, capfd):
     """Each odometry message is made to take 0.1 s of the node's callback (a sleep, so the share
     is the same on any machine) and one arrives at every turn of the executor: the node runs its
-    callbacks back to back, and its own status turns WARN, busy at its limit. Once the messages
-    stop, the next period finds it idle and OK again."""
+    callbacks back to back, and its own status turns WARN, busy at its limit, with a warning in
+    the log. Once the messages stop, the next period finds it idle: OK again, and logged."""
     import time
 
     from cloe_ros.ros.inference_node import BUSY_WARN
@@ -362,6 +362,10 @@ def test_a_node_at_its_limit_says_so_and_recovers(context):
         assert 'at its limit' in status.message and 'shard_count' in status.message
         assert spin_until(ex, lambda: inf.node_status().level == 0, 60), inf.node_status()
         assert float(dict(inf.node_status().values)['busy']) < BUSY_WARN
+        spin_until(ex, lambda: False, 0.3)  # (let the log lines reach stderr)
+        err = capfd.readouterr().err
+        assert '1 vehicle(s): busy' in err and 'at its limit' in err
+        assert 'keeps up with its inputs again' in err
     finally:
         ex.shutdown()
         del pubs

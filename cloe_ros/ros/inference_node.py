@@ -85,20 +85,26 @@ class Load:
 
     * ``busy``: the wall time its timed callbacks (inputs and batches) took, as a share of the
       wall time. The executor's own work (taking the messages) is not in it, so a node at its
-      limit reads about 0.85 to 0.9, not 1. Wall time: a node slowed by other processes on its
-      core counts as busy too.
-    * ``late``: how late a steady-clock timer of the node ran at worst, s. rclpy's
-      EventsExecutor queues a timer's turn behind the messages already waiting, so a node
-      behind its inputs runs its timers as late as its inputs wait: its states are that stale,
-      and what the subscriptions' histories overwrite meanwhile is missed (each vehicle's
-      ``odom_missing``).
+      limit reads less than 1 (0.77 under the load of EVALUATION.md section 4). Wall time: a
+      node slowed by other processes on its core counts as busy too.
+    * ``late``: how long after its deadline a steady-clock timer of the node ran, at worst, s.
+      Each :meth:`heartbeat` (the timer's callback) gives the timer's next deadline (rcl keeps
+      the deadlines on a fixed grid, so the time between two callbacks would not show a timer
+      that is always late); a deadline passed at a reading counts too, so a timer that could
+      not run yet shows. rclpy's EventsExecutor queues a timer's turn behind the messages
+      already waiting, so a node behind its inputs runs its timers about as late as its inputs
+      wait: its states are that stale, and what the subscriptions' histories overwrite
+      meanwhile is missed (each vehicle's ``odom_missing``). A reading without a heartbeat
+      since the last one keeps the last heartbeat's lateness.
     """
 
     def __init__(self) -> None:
         self.seconds = 0.0  # in the timed callbacks, since the start
         self._read = (time.perf_counter(), 0.0)
-        self._tick: float | None = None  # the last heartbeat
-        self._late = 0.0  # the worst lateness since the last reading
+        self._due: float | None = None  # the timer's next deadline (perf_counter time)
+        self._late = 0.0  # the worst lateness of the heartbeats since the last reading
+        self._beats = 0  # the heartbeats since the last reading
+        self._last_late = 0.0  # the last heartbeat's lateness
 
     def timed(self, fn):
         """``fn`` with its wall time added to :attr:`seconds`."""
@@ -114,20 +120,27 @@ class Load:
 
         return timed
 
-    def heartbeat(self, period: float, now: float | None = None) -> None:
-        """A steady timer of ``period`` s ran (at ``now``, ``time.perf_counter()`` if None)."""
+    def heartbeat(self, next_in: float | None, now: float | None = None) -> None:
+        """The timer ran (at ``now``, ``time.perf_counter()`` if None); its next deadline is
+        ``next_in`` s ahead (``Timer.time_until_next_call()``; None: not known)."""
         now = time.perf_counter() if now is None else now
-        if self._tick is not None:
-            self._late = max(self._late, now - self._tick - period)
-        self._tick = now
+        if self._due is not None:
+            self._last_late = max(0.0, now - self._due)
+            self._late = max(self._late, self._last_late)
+            self._beats += 1
+        self._due = None if next_in is None else now + next_in
 
-    def read(self) -> tuple[float, float]:
+    def read(self, now: float | None = None) -> tuple[float, float]:
         """``(busy, late)`` since the last reading (since the start for the first); busy in
         [0, 1], late in s (0 when on time)."""
-        now, then = time.perf_counter(), self._read
+        now = time.perf_counter() if now is None else now
+        then = self._read
         self._read = (now, self.seconds)
         busy = min(1.0, max(0.0, (self.seconds - then[1]) / max(now - then[0], 1e-9)))
-        late, self._late = max(self._late, 0.0), 0.0
+        late = self._late if self._beats else self._last_late
+        if self._due is not None:
+            late = max(late, now - self._due)  # (a deadline passed, the timer not run yet)
+        self._late, self._beats = 0.0, 0
         return busy, late
 
 
@@ -184,9 +197,8 @@ class InferenceNode(Node):
                               clock=steady)
             if self.batch_period > 0 else None
         )  # fmt: skip
-        self.discovery_period = declared['discovery_period']
         self._graph_timer = self.create_timer(
-            self.discovery_period, self._poll_graph, clock=steady
+            declared['discovery_period'], self._poll_graph, clock=steady
         )
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
@@ -366,7 +378,8 @@ class InferenceNode(Node):
         check that every vehicle has publishers of odom and reference; warn of a vehicle without
         them for ``publisher_timeout`` (with a hint when the un-namespaced vehicle waits while
         namespaced ones fly). Also the heartbeat of :attr:`load`."""
-        self.load.heartbeat(self.discovery_period)
+        next_in = self._graph_timer.time_until_next_call()
+        self.load.heartbeat(None if next_in is None else next_in / NS)
         now = time.monotonic()
         topics = self.get_topic_names_and_types()
         if self.discover:

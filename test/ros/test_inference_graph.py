@@ -318,23 +318,34 @@ def test_load_is_the_share_of_wall_time_in_callbacks_and_the_worst_timer_delay()
     assert load.read() == (0.0, 0.0)  # nothing ran since the last reading
     with pytest.raises(ZeroDivisionError):  # what a callback raises goes through
         load.timed(lambda: 1 / 0)()
-    for now in (10.0, 11.0, 12.25, 13.0):  # a 1 s timer, once 0.25 s late
-        load.heartbeat(1.0, now)
-    assert load.read()[1] == 0.25
-    load.heartbeat(1.0, 16.5)  # 2.5 s late
-    assert load.read()[1] == 2.5 and load.read()[1] == 0.0
+    # a 1 s timer: on time, then 0.25 s late (its next deadline stays on the grid)
+    load.heartbeat(1.0, now=10.0)
+    load.heartbeat(1.0, now=11.0)
+    load.heartbeat(0.75, now=12.25)
+    assert load.read(now=12.5)[1] == 0.25
+    assert load.read(now=12.9)[1] == 0.25  # no heartbeat since: the last one's lateness
+    assert load.read(now=15.5)[1] == 2.5  # the deadline of 13.0 passed, the timer not run
+    load.heartbeat(0.5, now=16.5)
+    assert load.read(now=16.75)[1] == 3.5
+    load.heartbeat(1.0, now=17.0)  # on time again
+    assert load.read(now=17.25)[1] == 0.0
+    load.heartbeat(None, now=18.0)  # (a cancelled timer: no next deadline)
+    assert load.read(now=30.0)[1] == 0.0
 
 
 def test_a_node_at_its_limit_says_so_and_recovers(context, capfd):
-    """Each odometry message is made to take 0.1 s of the node's callback (a sleep, so the share
-    is the same on any machine) and one arrives at every turn of the executor: the node runs its
-    callbacks back to back, and its own status turns WARN, busy at its limit, with a warning in
-    the log. Once the messages stop, the next period finds it idle: OK again, and logged."""
+    """Each odometry message is made to take 1 s of the node's callback (a sleep, so what the
+    node measures is the same on any machine) and one arrives at every turn of the executor:
+    the node runs its callbacks back to back and its 0.2 s graph-poll timer waits behind them,
+    so its own status turns WARN, busy at its limit and behind its inputs, with a warning in
+    the log. Once the messages stop, the next period finds it idle and on time: OK again, and
+    logged."""
     import time
 
-    from cloe_ros.ros.inference_node import BUSY_WARN
+    from cloe_ros.ros.inference_node import BUSY_WARN, LATE_WARN
 
-    inf = _inference(context, vehicles=['/uav1'], diagnostics_period=0.5, batch_period=0.0)
+    inf = _inference(context, vehicles=['/uav1'], diagnostics_period=0.5, discovery_period=0.2,
+                     batch_period=0.0)  # fmt: skip
     helper = rclpy_node(context)
     odom, _ = pubs = _vehicle_publishers(helper, '/uav1')
     ex = _executor(context, inf, helper)
@@ -342,29 +353,31 @@ def test_a_node_at_its_limit_says_so_and_recovers(context, capfd):
     accept = engine.add_odometry
 
     def slow(sample):
-        time.sleep(0.1)
+        time.sleep(1.0)
         return accept(sample)
 
     engine.add_odometry = slow
     sent = [0]
 
-    def busy_reported() -> bool:
+    def overload_reported() -> bool:
         odom.publish(odometry(sent[0]))
         sent[0] += 1
         status = inf.node_status()
-        return status.level == 1 and 'busy' in status.message
+        return (status.level == 1 and 'at its limit' in status.message
+                and 'behind its inputs' in status.message)  # fmt: skip
 
     try:
         assert spin_until(ex, lambda: odom.get_subscription_count() >= 1, 30)
-        assert spin_until(ex, busy_reported, 60), inf.node_status()
+        assert spin_until(ex, overload_reported, 60), inf.node_status()
         status = inf.node_status()
-        assert float(dict(status.values)['busy']) >= BUSY_WARN, status
-        assert 'at its limit' in status.message and 'shard_count' in status.message
+        values = dict(status.values)
+        assert float(values['busy']) >= BUSY_WARN and float(values['late_s']) >= LATE_WARN
+        assert 'shard_count' in status.message
         assert spin_until(ex, lambda: inf.node_status().level == 0, 60), inf.node_status()
-        assert float(dict(inf.node_status().values)['busy']) < BUSY_WARN
-        spin_until(ex, lambda: False, 0.3)  # (let the log lines reach stderr)
+        values = dict(inf.node_status().values)
+        assert float(values['busy']) < BUSY_WARN and float(values['late_s']) < LATE_WARN
         err = capfd.readouterr().err
-        assert '1 vehicle(s): busy' in err and 'at its limit' in err
+        assert '1 vehicle(s):' in err and 'at its limit' in err
         assert 'keeps up with its inputs again' in err
     finally:
         ex.shutdown()

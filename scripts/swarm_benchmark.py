@@ -10,10 +10,10 @@ Printed per run: messages received of those sent, CPU time of the receiving proc
 (from /proc), and for the node the share of the odometry that became a published ``cloe/state``
 and the latency of the states of the first vehicle (wall clock at reception minus stamp, p50 and
 p99), and what the node says of its load in /diagnostics: how many reports it published, the
-median of their ``busy`` (the share of wall time in its callbacks; WARN from 0.8) and the largest
-``late_s`` (how late its steady timer ran; WARN from 0.5 s). Speeds depend on the machine and its
-load: compare the node's column with the floor's in the same run (EVALUATION.md, section 4).
-Uses ROS_DOMAIN_ID 91 unless one is set.
+largest ``busy`` (the share of wall time in its callbacks; WARN from 0.8) and the largest
+``late_s`` (how long after its deadline its steady timer ran; WARN from 0.5 s). Speeds depend
+on the machine and its load: compare the node's column with the floor's in the same run
+(EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set.
 
     .venv/bin/python scripts/swarm_benchmark.py --offline bags/position [--repeat 3]
 
@@ -147,7 +147,7 @@ def listen(n: int, watch: str) -> None:
     def other(_raw: bytes) -> None:
         count[0] += 1
 
-    busy: list[float] = []
+    busy: list[float] = [0.0]
     late: list[float] = [0.0]
 
     def diagnostics(raw: bytes) -> None:
@@ -171,11 +171,9 @@ def listen(n: int, watch: str) -> None:
     while time.monotonic() < end:
         executor.spin_once(timeout_sec=0.1)
     p50, p99 = (np.percentile(lat, [50, 99]) if lat else (math.nan, math.nan))
-    # (the node's first report covers its start-up, its last the end of the load: left out)
-    during = busy[1:-1] or busy
-    share = float(np.median(during)) if during else math.nan
-    print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f} busy {share:.3f} '
-          f'late {max(late):.3f} reports {len(busy)}', flush=True)  # fmt: skip
+    # (the largest of the reports: those before the load, and the last, are of an idle node)
+    print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f} busy {max(busy):.3f} '
+          f'late {max(late):.3f} reports {len(busy) - 1}', flush=True)  # fmt: skip
     node.destroy_node()
     rclpy.shutdown()
 
@@ -290,7 +288,7 @@ def main() -> int:
 
     print('| vehicles | do-nothing subscriber: received, CPU per message | cloe_inference: '
           'states of odometry, CPU per message, ratio to the floor, latency p50 / p99 | '
-          "the node's /diagnostics: reports, busy (median), late (max) |")
+          "the node's /diagnostics: reports, busy (max), late_s (max) |")
     print('|---|---|---|---|')
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.vehicles:

@@ -73,9 +73,9 @@ OUTPUT_TYPES = {
 INPUTS = ('odom', 'reference', 'reference_plan')
 #: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
 STALE_AFTER = 2.0
-#: The node's status turns WARN when, over a diagnostics period, its input and batch callbacks
-#: took this share of the wall time (at its limit), or its steady timer ran this late, s (behind
-#: its inputs); see :class:`Load`.
+#: The node's status turns WARN when, over a diagnostics period, its callbacks took this share
+#: of the wall time (at its limit), or its steady timer ran this late, s (behind its inputs); see
+#: :class:`Load`.
 BUSY_WARN = 0.8
 LATE_WARN = 0.5
 
@@ -83,10 +83,11 @@ LATE_WARN = 0.5
 class Load:
     """How loaded the node's thread is, between two readings:
 
-    * ``busy``: the wall time its timed callbacks (inputs and batches) took, as a share of the
-      wall time. The executor's own work (taking the messages) is not in it, so a node at its
-      limit reads less than 1 (0.77 under the load of EVALUATION.md section 4). Wall time: a
-      node slowed by other processes on its core counts as busy too.
+    * ``busy``: the wall time its callbacks (inputs, batches, the graph poll, the diagnostics)
+      took, as a share of the wall time. The executor's own work (taking the messages) is not
+      in it, so a node at its limit reads less than 1 (about 0.8 to 0.9 under the load of
+      EVALUATION.md section 4). Wall time: a node slowed by other processes on its core counts
+      as busy too.
     * ``late``: how long after its deadline a steady-clock timer of the node ran, at worst, s.
       Each :meth:`heartbeat` (the timer's callback) gives the timer's next deadline (rcl keeps
       the deadlines on a fixed grid, so the time between two callbacks would not show a timer
@@ -198,13 +199,13 @@ class InferenceNode(Node):
             if self.batch_period > 0 else None
         )  # fmt: skip
         self._graph_timer = self.create_timer(
-            declared['discovery_period'], self._poll_graph, clock=steady
+            declared['discovery_period'], self.load.timed(self._poll_graph), clock=steady
         )
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
         )
         self._diag_timer = self.create_timer(
-            declared['diagnostics_period'], self._publish_diagnostics
+            declared['diagnostics_period'], self.load.timed(self._publish_diagnostics)
         )
         self._last_diag = (time.monotonic(), {v: 0 for v in self.vehicles})
         self.create_service(Trigger, '~/reset', self._reset_service)

@@ -142,7 +142,8 @@ class Load:
         if self._due is not None:
             late = max(late, now - self._due)  # (a deadline passed, the timer not run yet)
         self._late, self._beats = 0.0, 0
-        return busy, late
+        # (to the digits /diagnostics shows, so that what it shows decides the status)
+        return round(busy, 3), round(late, 3)
 
 
 class InferenceNode(Node):

@@ -333,30 +333,34 @@ def test_load_is_the_share_of_wall_time_in_callbacks_and_the_worst_timer_delay()
     assert load.read(now=30.0)[1] == 0.0
 
 
-def test_a_node_at_its_limit_says_so_and_recovers(context, capfd):
-    """Each odometry message is made to take 1 s of the node's callback (a sleep, so what the
-    node measures is the same on any machine) and one arrives at every turn of the executor:
-    the node runs its callbacks back to back and its 0.2 s graph-poll timer waits behind them,
-    so its own status turns WARN, busy at its limit and behind its inputs, with a warning in
-    the log. Once the messages stop, the next period finds it idle and on time: OK again, and
-    logged."""
+@pytest.mark.parametrize('where', ['odometry callback', 'batch timer'])
+def test_a_node_at_its_limit_says_so_and_recovers(context, capfd, where):
+    """Each odometry message is made to take 1 s of the node's time (a sleep, so what the node
+    measures is the same on any machine), in its odometry callback or in the batch its timer
+    steps (two vehicles, one of them silent, so no batch is ever complete at once), and one
+    arrives at every turn of the executor: the node works back to back and its 0.2 s
+    graph-poll timer waits behind, so its own status turns WARN, busy at its limit and behind
+    its inputs, with a warning in the log. Once the messages stop, the next period finds it
+    idle and on time: OK again, and logged."""
     import time
 
     from cloe_ros.ros.inference_node import BUSY_WARN, LATE_WARN
 
-    inf = _inference(context, vehicles=['/uav1'], diagnostics_period=0.5, discovery_period=0.2,
-                     batch_period=0.0)  # fmt: skip
+    batched = where == 'batch timer'
+    inf = _inference(context, vehicles=['/uav1', '/uav2'] if batched else ['/uav1'],
+                     diagnostics_period=0.5, discovery_period=0.2, publisher_timeout=600.0,
+                     batch_period=0.005 if batched else 0.0)  # fmt: skip
     helper = rclpy_node(context)
     odom, _ = pubs = _vehicle_publishers(helper, '/uav1')
     ex = _executor(context, inf, helper)
-    engine = inf.engines['/uav1']
-    accept = engine.add_odometry
+    owner, name = (inf.fleet, 'advance') if batched else (inf.engines['/uav1'], 'add_odometry')
+    fast = getattr(owner, name)
 
-    def slow(sample):
+    def slow(*args):
         time.sleep(1.0)
-        return accept(sample)
+        return fast(*args)
 
-    engine.add_odometry = slow
+    setattr(owner, name, slow)
     sent = [0]
 
     def overload_reported() -> bool:
@@ -377,7 +381,7 @@ def test_a_node_at_its_limit_says_so_and_recovers(context, capfd):
         values = dict(inf.node_status().values)
         assert float(values['busy']) < BUSY_WARN and float(values['late_s']) < LATE_WARN
         err = capfd.readouterr().err
-        assert '1 vehicle(s):' in err and 'at its limit' in err
+        assert f'{len(inf.vehicles)} vehicle(s):' in err and 'at its limit' in err
         assert 'keeps up with its inputs again' in err
     finally:
         ex.shutdown()

@@ -562,12 +562,15 @@ def test_diagnostics_name_each_vehicle_by_its_recorded_namespace(context, namesp
         statuses = [inf.vehicle_status(v, 0.0) for v in inf.vehicles]
         assert [s.hardware_id for s in statuses] == expected
         assert [s.name for s in statuses] == [f'cloe_inference: {ns}' for ns in expected]
-        # (the node's own subscriptions reach its graph cache asynchronously: wait for them)
+        # (the node's own subscriptions reach its graph cache asynchronously: wait for them.
+        # Asked per topic, not per node: a query by node name takes the first node of that name
+        # in the graph, which may be another test's that has not left it yet)
         wanted = {f'{ns.rstrip("/")}/odom' for ns in expected}
 
         def subscribed() -> set[str]:
-            return {name for name, _ in inf.get_subscriber_names_and_types_by_node(
-                'cloe_inference', namespace)}  # fmt: skip
+            return {topic for topic in wanted
+                    if any((e.node_name, e.node_namespace) == ('cloe_inference', namespace)
+                           for e in inf.get_subscriptions_info_by_topic(topic))}  # fmt: skip
 
         ex = _executor(context, inf)
         try:

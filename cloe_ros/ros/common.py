@@ -5,6 +5,8 @@ The only modules that import rclpy are under ``cloe_ros.ros``.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
 import re
 import sys
@@ -36,6 +38,28 @@ from cloe_ros.ros.errors import ParameterError, StartupError
 from cloe_ros.threads import limit_blas_threads
 
 NS = 1_000_000_000
+
+
+def destroyed_if_init_fails(init: Callable) -> Callable:
+    """For a node's ``__init__``: a node whose construction fails (a refused parameter, a bag
+    that does not open) is destroyed before the error goes on, so that it does not stay in the
+    ROS graph of its context, where a process that goes on (a test, an in-process user) would
+    still see a node of that name. Its own ``destroy_node`` runs first (it may hold a file or a
+    thread); if that fails on the half-made node, rclpy's does."""
+
+    @functools.wraps(init)
+    def wrapper(self: Node, *args, **kwargs) -> None:
+        try:
+            init(self, *args, **kwargs)
+        except BaseException:
+            try:
+                self.destroy_node()
+            except Exception:
+                with contextlib.suppress(Exception):  # (not made far enough to be destroyed)
+                    Node.destroy_node(self)
+            raise
+
+    return wrapper
 
 
 def run_node(

@@ -52,6 +52,7 @@ from cloe_ros.ros.common import (
     check_vehicles,
     declare,
     describe,
+    destroyed_if_init_fails,
     qos,
     refuse,
     run_node,
@@ -149,6 +150,7 @@ class Load:
 class InferenceNode(Node):
     """The inference node; see the module docstring and the README for its interface."""
 
+    @destroyed_if_init_fails
     def __init__(self, **kwargs) -> None:
         super().__init__('cloe_inference', **kwargs)
         declared = self._declare_parameters()

@@ -77,6 +77,7 @@ class LiveRelay(Node):
     transient-local messages to late subscribers. ``on_channel(topic, msgtype)`` is called for
     every channel made. ``relayed`` counts the messages per topic."""
 
+    @common.destroyed_if_init_fails
     def __init__(
         self,
         server_context: foxglove.Context,

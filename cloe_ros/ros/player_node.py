@@ -147,6 +147,7 @@ class PlayerNode(Node):
     it stopped because of a damaged bag, ``published`` counts the messages sent so far (over
     every pass), ``passes`` the passes begun (more than one with ``loop``)."""
 
+    @common.destroyed_if_init_fails
     def __init__(self, **kwargs) -> None:
         super().__init__('bag_player', **kwargs)
         self.failed = False

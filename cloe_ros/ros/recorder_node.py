@@ -134,6 +134,7 @@ def check_period(value, bounds: tuple[float, float]) -> str | None:
 class BagRecorder(Node):
     """Record topics into a crash-safe rosbag2 bag. Parameters: see :func:`_declare`."""
 
+    @common.destroyed_if_init_fails
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self._writer: BagWriter | None = None

@@ -68,6 +68,7 @@ from cloe_ros.ros.common import (
     check_vehicles,
     declare,
     describe,
+    destroyed_if_init_fails,
     qos,
     refuse,
     run_node,
@@ -140,6 +141,7 @@ class RealTimeMonitor:
 class SimulatorNode(Node):
     """The simulator node; see the module docstring and the README for its interface."""
 
+    @destroyed_if_init_fails
     def __init__(self, **kwargs) -> None:
         super().__init__('quadrotor_sim', **kwargs)
         values = self._declare_parameters()

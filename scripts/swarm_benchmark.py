@@ -147,8 +147,8 @@ def listen(n: int, watch: str) -> None:
     def other(_raw: bytes) -> None:
         count[0] += 1
 
-    busy: list[float] = [0.0]
-    late: list[float] = [0.0]
+    busy: list[float] = []
+    late: list[float] = []
 
     def diagnostics(raw: bytes) -> None:
         for status in decode_diagnostics(raw)[1]:
@@ -172,8 +172,9 @@ def listen(n: int, watch: str) -> None:
         executor.spin_once(timeout_sec=0.1)
     p50, p99 = (np.percentile(lat, [50, 99]) if lat else (math.nan, math.nan))
     # (the largest of the reports: those before the load, and the last, are of an idle node)
-    print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f} busy {max(busy):.3f} '
-          f'late {max(late):.3f} reports {len(busy) - 1}', flush=True)  # fmt: skip
+    print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f} '
+          f'busy {max(busy, default=0.0):.3f} late {max(late, default=0.0):.3f} '
+          f'reports {len(busy)}', flush=True)  # fmt: skip
     node.destroy_node()
     rclpy.shutdown()
 

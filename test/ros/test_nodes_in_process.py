@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import array
 import math
+import os
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -346,31 +346,29 @@ def test_reset_service_forgets_the_model(context):
 def test_invalid_startup_parameters_are_refused_with_a_reason(context, name, value, reason):
     """The documented form: ``parameter '<name>': <reason>`` (printed after ``ERROR: ``); the
     refused node is not left in the ROS graph."""
-    with left_in_graph(context, 'cloe_inference') as left:
-        with pytest.raises(ParameterError) as info:
-            InferenceNode(context=context, parameter_overrides=[Parameter(name, value=value)])
+    unique, renamed = unique_node_name()
+    with pytest.raises(ParameterError) as info:
+        InferenceNode(context=context, parameter_overrides=[Parameter(name, value=value)],
+                      cli_args=renamed)  # fmt: skip
     assert str(info.value).startswith(f"parameter '{name}': ")
     assert reason in str(info.value)
-    assert not left, left
+    assert not in_graph(context, unique)  # the refused node was destroyed
 
 
-@contextmanager
-def left_in_graph(context, name: str):
-    """Yields a list that holds, after the block, ``name`` if the block left one more node of
-    that name in the graph of ``context``'s participant than there was before it (its own nodes
-    are in the graph at once; other contexts' nodes of the name may leave meanwhile, never
-    come)."""
+def unique_node_name() -> tuple[str, list[str]]:
+    """A name no other node of the domain has, and the arguments that give it to a node (a node
+    of a test's context stays in the graph until the context is gone: another test's would
+    count)."""
+    name = f'refused_{os.getpid()}_{time.monotonic_ns()}'
+    return name, ['--ros-args', '-r', f'__node:={name}']
+
+
+def in_graph(context, name: str) -> bool:
+    """Whether a node called ``name`` is in the graph of ``context`` (its own nodes are in it
+    at once)."""
     probe = rclpy.create_node('graph_probe', context=context)
-    left: list[str] = []
     try:
-        def count() -> int:
-            return sum(1 for n, ns in probe.get_node_names_and_namespaces()
-                       if (n, ns) == (name, '/'))  # fmt: skip
-
-        before = count()
-        yield left
-        if count() > before:
-            left.append(name)
+        return any(n == name for n, _ in probe.get_node_names_and_namespaces())
     finally:
         probe.destroy_node()
 
@@ -402,11 +400,11 @@ def test_every_node_refuses_a_startup_parameter_in_the_documented_form(
         'quadrotor_sim': (SimulatorNode, {}),
     }[node]
     overrides = [Parameter(k, value=v) for k, v in {**params, **overrides}.items()]
-    with left_in_graph(context, node) as left:
-        with pytest.raises(ParameterError) as info:
-            cls(context=context, parameter_overrides=overrides)
+    unique, renamed = unique_node_name()
+    with pytest.raises(ParameterError) as info:
+        cls(context=context, parameter_overrides=overrides, cli_args=renamed)
     assert str(info.value).startswith(expected), str(info.value)
-    assert not left, left  # the refused node was destroyed
+    assert not in_graph(context, unique)  # the refused node was destroyed
 
 
 def test_invalid_runtime_parameters_are_refused_with_a_reason(context):

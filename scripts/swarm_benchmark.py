@@ -13,7 +13,10 @@ p99), and what the node says of its load in /diagnostics: how many reports it pu
 largest ``busy`` (the share of wall time in its callbacks; WARN from 0.8) and the largest
 ``late_s`` (how long after its deadline its steady timer ran; WARN from 0.5 s). Speeds depend
 on the machine and its load: compare the node's column with the floor's in the same run
-(EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set.
+(EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits
+the vehicles over K nodes (``shard_index`` / ``shard_count``, each its own process, as across
+hosts): the node's columns are then the K nodes together (CPU summed, the largest ``busy`` and
+``late_s`` of any).
 
     .venv/bin/python scripts/swarm_benchmark.py --offline bags/position [--repeat 3]
 
@@ -41,14 +44,15 @@ def cpu_seconds(pid: int) -> float:
 
 
 def publish(n: int, duration: float) -> None:
-    """The load: N vehicles, odometry 100 Hz, reference 10 Hz, for ``duration`` s."""
+    """The load: N vehicles, odometry 100 Hz, reference 10 Hz, for ``duration`` s. The
+    messages of a tick are computed for all vehicles at once and their bytes assembled from a
+    fixed head, so that the load generator takes little of the machine the node runs on."""
     import numpy as np
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry
 
-    from cloe_ros.core.kinematics import state_to_odometry_one, yaw_quaternion
-    from cloe_ros.core.samples import OdometrySample, PoseSample
+    from cloe_ros.core.kinematics import state_to_odometry
     from cloe_ros.io import cdr
     from cloe_ros.ros.common import qos
 
@@ -61,30 +65,39 @@ def publish(n: int, duration: float) -> None:
     while time.monotonic() < deadline and min(p.get_subscription_count() for p in odom) == 0:
         rclpy.spin_once(node, timeout_sec=0.05)
     time.sleep(1.0)  # let every subscription match
+    frames = cdr._odometry_frames('world', 'base_link')
+    pose_frame = cdr.encode_pose_stamped(cdr.PoseSample(0, 'world', np.zeros(3),
+                                                        np.array([0.0, 0.0, 0.0, 1.0])))
+    phase = 2 * np.pi * np.arange(n) / max(n, 1)
+    w = 0.5
+    zeta = np.zeros((n, 12))
+    zeta[:, 0] = 2 * np.arange(n)
+    zeta[:, 10] = 1.0
+    values = np.zeros((n, 85))
     start = time.monotonic()
     tick = 0
     sent = 0
     while (t := tick * 0.01) < duration:
-        now = start + t
-        delay = now - time.monotonic()
+        delay = start + t - time.monotonic()
         if delay > 0:
             time.sleep(delay)
         stamp = time.time_ns()
+        zeta[:, 0] = 2 * np.arange(n) + np.cos(w * t + phase)
+        zeta[:, 1] = -w * np.sin(w * t + phase)
+        zeta[:, 4], zeta[:, 5] = np.sin(w * t + phase), w * np.cos(w * t + phase)
+        p, q, v, a = state_to_odometry(zeta)
+        values[:, 0:3], values[:, 3:7], values[:, 43:46], values[:, 46:49] = p, q, v, a
+        head = cdr.LITTLE + cdr._time_bytes(stamp) + frames
         for k in range(n):
-            phase = 2 * math.pi * k / max(n, 1)
-            w = 0.5
-            zeta = np.zeros(12)
-            zeta[0], zeta[1] = 2 * k + math.cos(w * t + phase), -w * math.sin(w * t + phase)
-            zeta[4], zeta[5] = math.sin(w * t + phase), w * math.cos(w * t + phase)
-            zeta[10] = 1.0
-            p, q, v, a = state_to_odometry_one(zeta)
-            odom[k].publish(cdr.encode_odometry(OdometrySample(stamp, 'world', 'base_link',
-                                                               p, q, v, a)))  # fmt: skip
-            sent += 1
-            if tick % 10 == 0:
-                ref[k].publish(cdr.encode_pose_stamped(PoseSample(
-                    stamp, 'world', p.copy(), yaw_quaternion(0.0))))  # fmt: skip
-                sent += 1
+            odom[k].publish(head + values[k].tobytes())
+        sent += n
+        if tick % 10 == 0:
+            pose = np.zeros((n, 7))
+            pose[:, 0:3], pose[:, 6] = p, 1.0
+            for k in range(n):  # (the pose's doubles are the message's last 56 bytes)
+                ref[k].publish(cdr.LITTLE + cdr._time_bytes(stamp) + pose_frame[12:-56]
+                               + pose[k].tobytes())  # fmt: skip
+            sent += n
         tick += 1
     print(f'sent {sent}', flush=True)
     time.sleep(2.0)  # (let the last messages be delivered)
@@ -112,6 +125,48 @@ def floor(n: int, duration: float) -> None:
                                      raw=True) for k in range(n)]  # fmt: skip
     subs += [node.create_subscription(PoseStamped, f'/uav{k}/reference', callback,
                                       qos(depth=100), raw=True) for k in range(n)]  # fmt: skip
+    executor = EventsExecutor()
+    executor.add_node(node)
+    end = time.monotonic() + duration + 40.0
+    while time.monotonic() < end and not Path(os.environ['SWARM_DONE']).exists():
+        executor.spin_once(timeout_sec=0.1)
+    print(f'received {count[0]}', flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def relay(n: int, duration: float) -> None:
+    """The least an inference node does on DDS: per odometry message received, one Odometry
+    published on the vehicle's ``cloe/state`` (the received bytes, so the stamp is the
+    odometry's); the references are received and dropped. No estimation: what receiving and
+    publishing cost, and how late the states come, with an engine that costs nothing."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Odometry
+    from rclpy.experimental import EventsExecutor
+
+    from cloe_ros.ros.common import qos
+
+    rclpy.init()
+    node = rclpy.create_node('swarm_relay')
+    count = [0]
+
+    def forward(pub):
+        def callback(raw: bytes) -> None:
+            count[0] += 1
+            pub.publish(raw)
+
+        return callback
+
+    def drop(_raw: bytes) -> None:
+        count[0] += 1
+
+    for k in range(n):
+        pub = node.create_publisher(Odometry, f'/uav{k}/cloe/state', qos(depth=100))
+        node.create_subscription(Odometry, f'/uav{k}/odom', forward(pub), qos(depth=1000),
+                                 raw=True)  # fmt: skip
+        node.create_subscription(PoseStamped, f'/uav{k}/reference', drop, qos(depth=1000),
+                                 raw=True)  # fmt: skip
     executor = EventsExecutor()
     executor.add_node(node)
     end = time.monotonic() + duration + 40.0
@@ -152,8 +207,8 @@ def listen(n: int, watch: str) -> None:
 
     def diagnostics(raw: bytes) -> None:
         for status in decode_diagnostics(raw)[1]:
-            if status.name == 'cloe_inference':
-                values = dict(status.values)
+            values = dict(status.values)
+            if status.name.startswith('cloe_inference') and 'busy' in values:  # (a node's own)
                 busy.append(float(values['busy']))
                 late.append(float(values['late_s']))
 
@@ -180,7 +235,7 @@ def listen(n: int, watch: str) -> None:
 
 
 def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None = None,
-        qos_depth: int | None = None) -> dict[str, float]:  # fmt: skip
+        qos_depth: int | None = None, shards: int = 1) -> dict[str, float]:  # fmt: skip
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     env.setdefault('ROS_DOMAIN_ID', '91')
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -195,20 +250,29 @@ def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None =
         vehicles = '[' + ','.join(f"'/uav{k}'" for k in range(n)) + ']'
         procs['listen'] = subprocess.Popen([*me, '_listen', str(n), str(done)], env=env,
                                            stdout=subprocess.PIPE, text=True)  # fmt: skip
-        procs['rx'] = subprocess.Popen(
-            [sys.executable, '-m', 'cloe_ros.ros.inference_node', '--ros-args', '-p',
-             f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p', 'reference_timeout:=5.0',
-             *(['-p', f'batch_period:={batch}'] if batch is not None else []),
-             *(['-p', f'qos_depth:={qos_depth}'] if qos_depth is not None else [])],
-            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    if receiver == 'relay':
+        procs['rx'] = subprocess.Popen([*me, '_relay', str(n), str(duration)], env=env,
+                                       stdout=subprocess.PIPE, text=True)  # fmt: skip
+    elif receiver == 'node':
+        for k in range(shards):  # (one node, or one per shard: each its own process)
+            shard = (['-p', f'shard_index:={k}', '-p', f'shard_count:={shards}', '-r',
+                      f'__node:=cloe_inference_{k}'] if shards > 1 else [])  # fmt: skip
+            procs[f'rx{k}'] = subprocess.Popen(
+                [sys.executable, '-m', 'cloe_ros.ros.inference_node', '--ros-args', '-p',
+                 f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p',
+                 'reference_timeout:=5.0', *shard,
+                 *(['-p', f'batch_period:={batch}'] if batch is not None else []),
+                 *(['-p', f'qos_depth:={qos_depth}'] if qos_depth is not None else [])],
+                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    receivers = [p for name, p in procs.items() if name.startswith('rx')]
     time.sleep(3.0)  # (discovery)
-    cpu0 = cpu_seconds(procs['rx'].pid)
+    cpu0 = sum(cpu_seconds(p.pid) for p in receivers)
     pub = subprocess.Popen([*me, '_publish', str(n), str(duration)], env=env,
                            stdout=subprocess.PIPE, text=True)  # fmt: skip
     out, _ = pub.communicate()
     sent = int(out.split()[-1])
     time.sleep(2.0)
-    cpu = cpu_seconds(procs['rx'].pid) - cpu0
+    cpu = sum(cpu_seconds(p.pid) for p in receivers) - cpu0
     done.touch()
     result = {'sent': sent, 'cpu_s': cpu}
     if receiver == 'floor':
@@ -218,8 +282,12 @@ def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None =
         result.update(states=int(words[1]), p50=float(words[3]), p99=float(words[5]),
                       busy=float(words[7]), late=float(words[9]),
                       reports=int(words[11]))  # fmt: skip
-        procs['rx'].terminate()
-        procs['rx'].wait(30)
+        if receiver == 'relay':
+            procs['rx'].communicate()
+        for p in receivers:
+            p.terminate()
+        for p in receivers:
+            p.wait(30)
     return result
 
 
@@ -267,6 +335,7 @@ def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1].startswith('_'):
         {'_publish': lambda: publish(int(sys.argv[2]), float(sys.argv[3])),
          '_floor': lambda: floor(int(sys.argv[2]), float(sys.argv[3])),
+         '_relay': lambda: relay(int(sys.argv[2]), float(sys.argv[3])),
          '_listen': lambda: listen(int(sys.argv[2]), sys.argv[3]),
          '_io_floor': lambda: io_floor(Path(sys.argv[2]), Path(sys.argv[3]))}[sys.argv[1]]()
         return 0
@@ -281,6 +350,13 @@ def main() -> int:
     parser.add_argument('--qos-depth', type=int, default=None,
                         help="the node's qos_depth, the history of its subscriptions (default: "
                              "the node's default)")  # fmt: skip
+    parser.add_argument('--shards', type=int, default=1,
+                        help='split the vehicles over this many inference nodes (shard_index / '
+                             'shard_count), each its own process; CPU is their sum')  # fmt: skip
+    parser.add_argument('--relay', action='store_true',
+                        help='also run the relay (receive, publish one state per odometry, no '
+                             'estimation) under the same load: what an engine that costs '
+                             'nothing would deliver on this machine')  # fmt: skip
     args = parser.parse_args()
     if args.offline:
         offline(args.offline, args.repeat)
@@ -294,12 +370,21 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.vehicles:
             f = run(n, args.duration, 'floor', Path(tmp))
-            c = run(n, args.duration, 'node', Path(tmp), args.batch_period, args.qos_depth)
-            odom = round(args.duration * 100) * n
             floor_us = 1e6 * f['cpu_s'] / max(f['received'], 1)
+            odom = round(args.duration * 100) * n
+            if args.relay:
+                r = run(n, args.duration, 'relay', Path(tmp))
+                relay_us = 1e6 * r['cpu_s'] / r['sent']
+                print(f"| {n} (relay: no estimation) | {f['received']} of {f['sent']}, "
+                      f"{floor_us:.0f} us | {r['states']} of {odom} "
+                      f"({100 * r['states'] / odom:.1f} %), {relay_us:.0f} us, "
+                      f"{relay_us / floor_us:.1f}x, {1e3 * r['p50']:.0f} / "
+                      f"{1e3 * r['p99']:.0f} ms | |", flush=True)  # fmt: skip
+            c = run(n, args.duration, 'node', Path(tmp), args.batch_period, args.qos_depth,
+                    args.shards)
             node_us = 1e6 * c['cpu_s'] / c['sent']
             print(f"| {n} | {f['received']} of {f['sent']}, {floor_us:.0f} us | "
-                  f"{c['states']} of {odom} ({100 * c['states'] / odom:.0f} %), {node_us:.0f} us, "
+                  f"{c['states']} of {odom} ({100 * c['states'] / odom:.1f} %), {node_us:.0f} us, "
                   f"{node_us / floor_us:.1f}x, {1e3 * c['p50']:.0f} / {1e3 * c['p99']:.0f} ms | "
                   f"{c['reports']}, {c['busy']:.2f}, {c['late']:.1f} s |",
                   flush=True)  # fmt: skip

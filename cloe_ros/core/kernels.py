@@ -38,38 +38,45 @@ import numpy as np
 from numba import njit, types
 from numba.core.errors import NumbaError
 
-# The cache holds machine code by this file's path, and what it pickles names the module: this
-# file loaded under another name (a script's importlib, a checker) would leave entries that the
-# package's own import then fails to load. Only the package's module reads and writes it.
-_CACHED = __name__ == 'cloe_ros.core.kernels'
+
+class Compiler:
+    """The decorator of a module's kernels: ``numba.njit(signature)``, without the GIL, with
+    numpy's errors (``x / 0`` gives inf or nan, not an exception) and with numba's cache where
+    it can have one.
+
+    The cache holds machine code by the file's path, and what it pickles names the module: the
+    file loaded under another name (a script's importlib, a checker) would leave entries that
+    the package's own import then fails to load. So only the package's own module (``own``,
+    the name it is imported by, against ``module``, the name it was loaded as) reads and writes
+    it. Where numba can have no cache (no writable folder for it: the package's read-only, and
+    so the user's cache folder, with no ``NUMBA_CACHE_DIR``; or an entry it cannot load), the
+    kernels compile without it, in every process that imports them (a few seconds, still
+    before any message), and one warning says so."""
+
+    def __init__(self, module: str, own: str) -> None:
+        self.cached = module == own
+
+    def __call__(self, signature):
+        options = dict(nogil=True, error_model='numpy')
+
+        def decorate(func):
+            if self.cached:
+                try:
+                    return njit(signature, cache=True, **options)(func)
+                except NumbaError:  # the kernel itself does not compile: not the cache's
+                    raise
+                except Exception as err:  # whatever else the cache's problem, do without it
+                    self.cached = False
+                    warnings.warn(
+                        f'cloe_ros: numba cannot cache the compiled kernels ({err}); each '
+                        'process compiles them when it starts. Set NUMBA_CACHE_DIR to a '
+                        'writable folder to keep them.', RuntimeWarning, stacklevel=2)  # fmt: skip
+            return njit(signature, cache=False, **options)(func)
+
+        return decorate
 
 
-def _compiled(signature):
-    """``numba.njit(signature)``, without the GIL, with numpy's errors (``x / 0`` gives inf or
-    nan, not an exception) and with numba's cache where it can have one. Where it
-    cannot (no writable folder for it: the package's read-only, and so the user's cache folder,
-    with no ``NUMBA_CACHE_DIR``; or an entry it cannot load), the kernels compile without it, in
-    every process that imports them (a few seconds, still before any message), and one warning
-    says so."""
-
-    options = dict(nogil=True, error_model='numpy')
-
-    def decorate(func):
-        global _CACHED
-        if _CACHED:
-            try:
-                return njit(signature, cache=True, **options)(func)
-            except NumbaError:  # the kernel itself does not compile: not the cache's problem
-                raise
-            except Exception as err:  # whatever else the cache's problem, compile without it
-                _CACHED = False
-                warnings.warn(
-                    f'cloe_ros: numba cannot cache the compiled kernels ({err}); each process '
-                    'compiles them when it starts. Set NUMBA_CACHE_DIR to a writable folder to '
-                    'keep them.', RuntimeWarning, stacklevel=2)  # fmt: skip
-        return njit(signature, cache=False, **options)(func)
-
-    return decorate
+_compiled = Compiler(__name__, 'cloe_ros.core.kernels')
 
 
 _F1 = 'float64[::1]'

@@ -134,7 +134,7 @@ def test_the_kernels_compile_without_a_cache_where_numba_cannot_have_one(tmp_pat
         '    warnings.simplefilter("always")\n'
         '    import cloe_ros.core.kernels as k\n'
         'import numpy as np\n'
-        'print(k._CACHED, sum("cannot cache" in str(w.message) for w in caught),\n'
+        'print(k._compiled.cached, sum("cannot cache" in str(w.message) for w in caught),\n'
         '      k.einsum_dot(np.ones(3), np.arange(3.0)))\n'
     )  # fmt: skip
     env = {**os.environ, 'PYTHONPATH': str(REPO)}

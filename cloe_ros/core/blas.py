@@ -1,0 +1,256 @@
+"""numpy's own BLAS and LAPACK, called from compiled kernels, as numpy calls them.
+
+A compiled kernel that replaces numpy code holds the golden test only if it gives bitwise
+numpy's values. For products and solves that numpy hands to BLAS and LAPACK, an equivalent
+loop is not enough (OpenBLAS sums in its own blocked order, and LAPACK's pivoting and
+decompositions are not reproduced by small-matrix code: EVALUATION.md, section 4). So the
+kernels call the very routines numpy calls, in the library numpy loaded, with the arguments
+numpy passes:
+
+* :func:`matmul` is ``a @ b`` of two 2-D arrays: numpy's dispatch (``dot`` for a row times a
+  column, ``gemv`` for a matrix times a vector, ``syrk`` for a matrix times its own transpose,
+  ``gemm`` otherwise, its plain loop where BLAS cannot take the strides);
+* :func:`solve` is ``np.linalg.solve`` (``dgesv`` on Fortran-ordered copies);
+* :func:`lstsq` is ``np.linalg.lstsq(a, b, rcond=None)`` (``dgelsd``, with numpy's workspace
+  query and default ``rcond``).
+
+The routines are found by name in numpy's OpenBLAS (the ``scipy-openblas64`` library of
+numpy's wheels: symbols ``scipy_<name>64_``, 64-bit integers). :data:`AVAILABLE` says whether
+they were; where they were not (a numpy built against another BLAS), the kernels that need
+them are not defined and the package runs its numpy code instead.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import os
+
+import numpy as np
+
+PREFIX, SUFFIX = 'scipy_', '64_'
+#: The Fortran routines and CBLAS functions the kernels call.
+ROUTINES = ('dgesv', 'dgelsd', 'cblas_dgemv', 'cblas_dgemm', 'cblas_dsyrk', 'cblas_ddot')
+
+
+def _find_library() -> str | None:
+    """The path of numpy's OpenBLAS if it holds every routine of :data:`ROUTINES` by the names
+    numpy's wheels give them, else None."""
+    here = os.path.dirname(np.__file__)
+    for path in sorted(glob.glob(os.path.join(here, os.pardir, 'numpy.libs',
+                                              'libscipy_openblas64_*'))):  # fmt: skip
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        if all(hasattr(lib, symbol(name)) for name in ROUTINES):
+            return os.path.abspath(path)
+    return None
+
+
+def symbol(name: str) -> str:
+    """The exported name of routine ``name`` (``dgesv``, ``cblas_dgemm``) in numpy's OpenBLAS."""
+    return f'{PREFIX}{name}{SUFFIX}' if name.startswith('cblas_') else f'{PREFIX}{name}_{SUFFIX}'
+
+
+LIBRARY = _find_library()
+#: Whether the kernels can call numpy's BLAS and LAPACK (see the module docstring).
+AVAILABLE = LIBRARY is not None and os.environ.get('CLOE_ROS_NO_BLAS_KERNELS', '') in ('', '0')
+
+if AVAILABLE:
+    import llvmlite.binding
+    from numba import types
+
+    llvmlite.binding.load_library_permanently(LIBRARY)  # (the kernels link to it by name)
+
+    _P = types.CPointer
+    _I, _D, _C = types.int64, types.float64, types.int32  # (blasint, double, CBLAS enums)
+    _dgesv = types.ExternalFunction(symbol('dgesv'), types.void(
+        _P(_I), _P(_I), _P(_D), _P(_I), _P(_I), _P(_D), _P(_I), _P(_I)))
+    _dgelsd = types.ExternalFunction(symbol('dgelsd'), types.void(
+        _P(_I), _P(_I), _P(_I), _P(_D), _P(_I), _P(_D), _P(_I), _P(_D), _P(_D), _P(_I),
+        _P(_D), _P(_I), _P(_I), _P(_I)))
+    _dgemv = types.ExternalFunction(symbol('cblas_dgemv'), types.void(
+        _C, _C, _I, _I, _D, _P(_D), _I, _P(_D), _I, _D, _P(_D), _I))
+    _dgemm = types.ExternalFunction(symbol('cblas_dgemm'), types.void(
+        _C, _C, _C, _I, _I, _I, _D, _P(_D), _I, _P(_D), _I, _D, _P(_D), _I))
+    _dsyrk = types.ExternalFunction(symbol('cblas_dsyrk'), types.void(
+        _C, _C, _C, _I, _I, _D, _P(_D), _I, _D, _P(_D), _I))
+    _ddot = types.ExternalFunction(symbol('cblas_ddot'), _D(_I, _P(_D), _I, _P(_D), _I))
+
+    from cloe_ros.core.kernels import Compiler
+
+    ROW_MAJOR, COL_MAJOR, NO_TRANS, TRANS, UPPER = 101, 102, 111, 112, 121
+    _compiled = Compiler(__name__, 'cloe_ros.core.blas')
+    _A1, _A2 = 'float64[:]', 'float64[:, :]'  # (any strides: one signature serves every view)
+
+    @_compiled('boolean(intp, intp, intp, intp)')
+    def _blasable(s1, s2, d1, d2):
+        """numpy's ``is_blasable2d`` with element strides: unit inner stride, an outer one
+        at least the inner extent (and a BLAS int)."""
+        return s2 == 1 and s1 >= d2 and s1 <= 2**31 - 1
+
+    @_compiled(f'void({_A2}, {_A2}, {_A2})')
+    def _gemm_or_syrk(a, b, out):
+        """numpy's matrix-matrix product of BLAS-able operands into a C-ordered ``out``:
+        ``syrk`` for a matrix times its own transpose (the other triangle copied), else
+        ``gemm``."""
+        m, n = a.shape
+        p = b.shape[1]
+        s1m, s1n = a.strides[0] // 8, a.strides[1] // 8
+        s2n, s2p = b.strides[0] // 8, b.strides[1] // 8
+        if _blasable(s1m, s1n, m, n):
+            trans1, lda = NO_TRANS, s1m
+        else:
+            trans1, lda = TRANS, s1n
+        if _blasable(s2n, s2p, n, p):
+            trans2, ldb = NO_TRANS, s2n
+        else:
+            trans2, ldb = TRANS, s2p
+        ldc = out.strides[0] // 8
+        if (a.ctypes.data == b.ctypes.data and m == p and s1m == s2p and s1n == s2n
+                and trans1 != trans2):  # fmt: skip
+            _dsyrk(ROW_MAJOR, UPPER, trans1, p, n, 1.0, a.ctypes,
+                   lda if trans1 == NO_TRANS else ldb, 0.0, out.ctypes, ldc)  # fmt: skip
+            for i in range(p):
+                for j in range(i + 1, p):
+                    out[j, i] = out[i, j]
+        else:
+            _dgemm(ROW_MAJOR, trans1, trans2, m, p, n, 1.0, a.ctypes, lda, b.ctypes, ldb, 0.0,
+                   out.ctypes, ldc)
+
+    @_compiled(f'void({_A2}, {_A1}, {_A1}, intp, intp)')
+    def _gemv(a, x, y, s_m, s_n):
+        """``y = a @ x`` for ``a`` (m, n) blasable with element strides ``(s_m, s_n)``:
+        numpy's ``gemv`` (column-major with the transpose, or row-major)."""
+        m, n = a.shape
+        if _blasable(s_m, s_n, m, n):
+            order, lda = COL_MAJOR, s_m
+        else:
+            order, lda = ROW_MAJOR, s_n
+        _dgemv(order, TRANS, n, m, 1.0, a.ctypes, lda, x.ctypes, x.strides[0] // 8, 0.0, y.ctypes,
+               y.strides[0] // 8)
+
+    @_compiled(f'void({_A1}, {_A1}, {_A2})')
+    def _dot(x, y, out):
+        """``out[0, 0]`` = numpy's ``dot`` of two vectors: ``cblas_ddot`` where the strides
+        allow it, else a plain sum in order."""
+        n = x.shape[0]
+        sx, sy = x.strides[0] // 8, y.strides[0] // 8
+        if sx > 0 and sy > 0:
+            out[0, 0] = _ddot(n, x.ctypes, sx, y.ctypes, sy)
+        else:
+            s = 0.0
+            for i in range(n):
+                s += x[i] * y[i]
+            out[0, 0] = s
+
+    @_compiled(f'void({_A2}, {_A2}, {_A2})')
+    def _noblas(a, b, out):
+        """numpy's matmul loop without BLAS: each entry summed from 0 in order."""
+        m, n = a.shape
+        p = b.shape[1]
+        for i in range(m):
+            for j in range(p):
+                s = 0.0
+                for k in range(n):
+                    s += a[i, k] * b[k, j]
+                out[i, j] = s
+
+    @_compiled(f'void({_A2}, {_A2}, {_A2})')
+    def matmul(a, b, out):
+        """``out[...] = a @ b`` for 2-D float64 ``a`` (m, n), ``b`` (n, p), ``out`` (m, p) (any
+        strides; ``out`` may not overlap them): numpy's matmul, the same routine and
+        arguments, so the same bits."""
+        m, n = a.shape
+        p = b.shape[1]
+        s1m, s1n = a.strides[0] // 8, a.strides[1] // 8
+        s2n, s2p = b.strides[0] // 8, b.strides[1] // 8
+        som, sop = out.strides[0] // 8, out.strides[1] // 8
+        if m == 0 or p == 0:
+            return
+        if n == 0:
+            out[:, :] = 0.0
+            return
+        i1_c, i2_c = _blasable(s1m, s1n, m, n), _blasable(s2n, s2p, n, p)
+        i1_f, i2_f = _blasable(s1n, s1m, n, m), _blasable(s2p, s2n, p, n)
+        i1, i2 = i1_c or i1_f, i2_c or i2_f
+        o_c = _blasable(som, sop, m, p)
+        if m == 1 or n == 1 or p == 1:
+            if m == 1 and p == 1:
+                _dot(a[0, :], b[:, 0], out)
+            elif n == 1:
+                _noblas(a, b, out)
+            elif m == 1 and i2 and _blasable(s1n, 1, n, 1):
+                # vector @ matrix: gemv of b's transpose
+                _gemv(b.T, a[0, :], out[0, :], s2p, s2n)
+            elif p == 1 and i1 and _blasable(s2n, 1, n, 1):
+                _gemv(a, b[:, 0], out[:, 0], s1m, s1n)
+            else:
+                _noblas(a, b, out)
+            return
+        if i1 and i2 and o_c:
+            _gemm_or_syrk(a, b, out)
+            return
+        # numpy copies what BLAS cannot take to C-ordered buffers, then multiplies those
+        tmp = np.empty((m, p))
+        _gemm_or_syrk(a if i1 else np.ascontiguousarray(a),
+                      b if i2 else np.ascontiguousarray(b), tmp)  # fmt: skip
+        out[:, :] = tmp
+
+    @_compiled(f'int64({_A2}, {_A2}, {_A2}, float64[:, ::1], float64[:, ::1], int64[::1])')
+    def solve(a, b, out, work_a, work_b, pivots):
+        """``out`` (n, k) = ``np.linalg.solve(a, b)`` for ``a`` (n, n), ``b`` (n, k): ``dgesv``
+        on Fortran-ordered copies (``work_a`` (n, n), ``work_b`` (k, n), ``pivots`` (n,) int64).
+        Returns LAPACK's ``info`` (> 0: ``a`` is singular, where numpy raises)."""
+        n, k = b.shape
+        for i in range(n):
+            for j in range(n):
+                work_a[j, i] = a[i, j]
+            for j in range(k):
+                work_b[j, i] = b[i, j]
+        sizes = np.empty(4, np.int64)
+        sizes[0], sizes[1], sizes[2] = n, k, 0
+        _dgesv(sizes[0:].ctypes, sizes[1:].ctypes, work_a.ctypes, sizes[0:].ctypes,
+               pivots.ctypes, work_b.ctypes, sizes[0:].ctypes, sizes[2:].ctypes)
+        for i in range(n):
+            for j in range(k):
+                out[i, j] = work_b[j, i]
+        return sizes[2]
+
+    @_compiled(f'int64({_A2}, {_A2}, {_A2})')
+    def lstsq(a, b, out):
+        """``out`` (n, k) = ``np.linalg.lstsq(a, b, rcond=None)[0]`` for ``a`` (m, n), ``b``
+        (m, k): ``dgelsd`` as numpy calls it (its workspace query, ``rcond`` = eps max(m, n)).
+        Returns LAPACK's ``info`` (> 0: no convergence, where numpy raises)."""
+        m, n = a.shape
+        k = b.shape[1]
+        ldb = max(1, m, n)
+        fa = np.empty((n, max(1, m)))
+        fb = np.zeros((k, ldb))
+        for i in range(m):
+            for j in range(n):
+                fa[j, i] = a[i, j]
+            for j in range(k):
+                fb[j, i] = b[i, j]
+        s = np.empty(max(1, min(m, n)))
+        ints = np.empty(8, np.int64)
+        ints[0], ints[1], ints[2], ints[3], ints[4] = m, n, k, max(1, m), ldb
+        ints[5], ints[6], ints[7] = 0, -1, 0  # rank, lwork, info
+        rcond = np.empty(1)
+        rcond[0] = np.finfo(np.float64).eps * max(m, n)
+        query = np.empty(1)
+        iquery = np.empty(1, np.int64)
+        _dgelsd(ints[0:].ctypes, ints[1:].ctypes, ints[2:].ctypes, fa.ctypes, ints[3:].ctypes,
+                fb.ctypes, ints[4:].ctypes, s.ctypes, rcond.ctypes, ints[5:].ctypes, query.ctypes,
+                ints[6:].ctypes, iquery.ctypes, ints[7:].ctypes)
+        work = np.empty(max(1, int(query[0])))
+        iwork = np.empty(max(1, iquery[0]), np.int64)
+        ints[6] = work.shape[0]
+        _dgelsd(ints[0:].ctypes, ints[1:].ctypes, ints[2:].ctypes, fa.ctypes, ints[3:].ctypes,
+                fb.ctypes, ints[4:].ctypes, s.ctypes, rcond.ctypes, ints[5:].ctypes, work.ctypes,
+                ints[6:].ctypes, iwork.ctypes, ints[7:].ctypes)
+        for i in range(n):
+            for j in range(k):
+                out[i, j] = fb[j, i]
+        return ints[7]

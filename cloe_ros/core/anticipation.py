@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cloe_ros.core import kernels
+from cloe_ros.core import kernels, kernels_combine, kernels_ensemble, kernels_models
 from cloe_ros.core.model import (
     BLOCK_SLICES,
     BLOCKS,
@@ -84,6 +84,23 @@ SCALE_GROWTH = 0.05
 USES_REFERENCE = ('model',)
 #: Intent models of the reference, in this order (see :class:`Intent`).
 INTENT_MODELS = ('hold', 'velocity', 'harmonic', 'harmonic_xy')
+
+#: The predictions run compiled (:mod:`~cloe_ros.core.kernels_models`,
+#: :mod:`~cloe_ros.core.kernels_ensemble`, :mod:`~cloe_ros.core.kernels_combine`): each kernel
+#: gives bitwise the numpy code's values (it calls numpy's own BLAS and LAPACK,
+#: :mod:`~cloe_ros.core.blas`), without the requests that batch that code's solves over the
+#: vehicles. Where numpy's OpenBLAS is not found, the numpy code runs.
+COMPILED = kernels_ensemble.AVAILABLE and kernels_combine.AVAILABLE and kernels_models.AVAILABLE
+
+
+def raise_for(status: int) -> None:
+    """Raise what the numpy code raises where a kernel returned ``status`` (0: nothing)."""
+    if status == kernels_ensemble.LINALG_ERROR:
+        raise np.linalg.LinAlgError('a solve of the prediction failed (singular matrix)')
+    if status == kernels_ensemble.INDEX_ERROR:
+        raise IndexError('the prediction has no candidate to weigh')
+    if status:
+        raise ValueError(f'the prediction failed (kernel status {status})')
 
 
 @dataclass(frozen=True)
@@ -335,6 +352,12 @@ class Intent:
         (T,) s, the last sample being now; as steps (see :func:`run`): the harmonic fit is a
         request."""
         k = len(self.ahead)
+        if COMPILED:
+            out = np.empty((len(INTENT_MODELS), k, 4))
+            raise_for(kernels_ensemble.intent_candidates(
+                np.ascontiguousarray(t, dtype=float), np.ascontiguousarray(r, dtype=float),
+                self.ahead, self.OMEGAS, float(self.window), self.SUBSAMPLE_HZ, out))  # fmt: skip
+            return out
         out = np.broadcast_to(r[-1], (len(INTENT_MODELS), k, 4)).copy()
         now = t[-1]
         start = last_jump(r[:, POSITION_CHANNELS])
@@ -638,7 +661,19 @@ class Ensemble:
             w = np.zeros((len(self.offsets), m))
             w[:, int(np.flatnonzero(allowed)[0])] = 1.0
             return w
+        if COMPILED:
+            return compiled_weights(self, m, allowed)
         return (yield SimplexWeights(self.expected_cross(), allowed))
+
+
+def compiled_weights(ensemble: Ensemble, m: int, allowed: np.ndarray) -> np.ndarray:
+    """The weights (K, m) over the first ``m`` candidates of ``ensemble``, the ``allowed`` ones
+    (:func:`~cloe_ros.core.kernels_ensemble.ensemble_weights`)."""
+    out = np.empty((len(ensemble.offsets), m))
+    raise_for(kernels_ensemble.ensemble_weights(
+        ensemble.cross, ensemble.scored, ensemble.offsets, ensemble.min_growth, m,
+        np.ascontiguousarray(allowed, dtype=bool), out))  # fmt: skip
+    return out
 
 
 # ------------------------------------------------------------------------------ radius
@@ -764,6 +799,13 @@ class ReferenceTrust:
         dt = 0.2 if self._last_t is None else max(t - self._last_t, 0.0)
         self._last_t = t
         a = 1.0 - math.exp(-dt / cfg.trust_time)
+        if COMPILED:  # (a new followed array, as np.where gives: steps may hold the old one)
+            self.followed = self.followed.copy()
+            self.all_followed = bool(kernels_models.trust_update(
+                self.e_ref, self.e_free, self.followed, np.asarray(miss_ref, dtype=float),
+                np.asarray(miss_free, dtype=float), a, cfg.trust_ratio**2,
+                cfg.trust_floor**2))  # fmt: skip
+            return
         for stat, new in ((self.e_ref, miss_ref**2), (self.e_free, miss_free**2)):
             fresh = np.isnan(stat)
             stat[fresh] = new[fresh]
@@ -992,7 +1034,21 @@ class Anticipator:
         held_t = hist.ordered('t')
         scored = self.guard.score(since, t, held_t, hist.ordered('measured'), POSITION)
         slots, ks = scored.slots, scored.horizons
-        errors = np.sqrt(scored.squared[:, -1])  # the published prediction's
+        if COMPILED:
+            r = self.radius
+            kernels_combine.coverage_scored(slots, ks, scored.squared, self._radii, self._scales,
+                                            r._errors, r._count, r.level, r.gain,
+                                            r.coverage)  # fmt: skip
+        else:
+            self._update_radius(slots, ks, np.sqrt(scored.squared[:, -1]))
+        self.intent_scores.score(since, t, held_t, hist.ordered('logged'), POSITION_CHANNELS)
+        self.virtual.update(np.asarray(theta, float), np.asarray(coupling, float), BLOCKS)
+        yield from self._update_trust_steps(t, theta, coupling)
+
+    def _update_radius(self, slots: np.ndarray, ks: np.ndarray, errors: np.ndarray) -> None:
+        """The radius's update with the published prediction's ``errors`` (m) at the scored
+        poses (slots ``slots``, horizons ``ks``), as :func:`~cloe_ros.core.kernels_combine.
+        coverage_scored` does it compiled."""
         radii, scales = self._radii[slots, ks], self._scales[slots, ks]
         if len(ks) and len(np.unique(ks)) == len(ks):
             # each horizon scored once (as between two predictions): one update, the same
@@ -1001,9 +1057,6 @@ class Anticipator:
             starts = np.flatnonzero(np.r_[True, slots[1:] != slots[:-1]])
             for a, b in zip(starts, [*starts[1:], len(slots)]):
                 self.radius.update(ks[a:b], errors[a:b], radii[a:b], scales[a:b])
-        self.intent_scores.score(since, t, held_t, hist.ordered('logged'), POSITION_CHANNELS)
-        self.virtual.update(np.asarray(theta, float), np.asarray(coupling, float), BLOCKS)
-        yield from self._update_trust_steps(t, theta, coupling)
 
     def _judging_model(self, t: float, theta: np.ndarray, coupling: np.ndarray) -> tuple:
         """The model each channel's reference is judged with (:class:`ReferenceTrust`): the
@@ -1037,6 +1090,17 @@ class Anticipator:
         """The hindsight replay of :class:`ReferenceTrust` over the last ``trust_horizon``. As
         steps (see :func:`run`): the replay is a request."""
         (ad, bd), judging = self._judging_model(t, theta, coupling)
+        if COMPILED:
+            hist = self.history
+            held = hist.held
+            miss_ref, miss_free = np.empty(4), np.empty(4)
+            if not kernels_models.trust_replay(
+                hist.t[held], hist.estimate[held], hist.measured[held], hist.logged[held], t,
+                self.step, self.config.trust_horizon, ad, bd, miss_ref, miss_free,
+            ):  # fmt: skip
+                return
+            self._judged(t, miss_ref, miss_free, judging)
+            return
         horizon = self.config.trust_horizon
         n = max(1, round(horizon / self.step))
         t_then = t - n * self.step
@@ -1055,6 +1119,12 @@ class Anticipator:
         miss_ref = np.abs(x[CHANNEL_STATE] - now[CHANNEL_STATE])
         free = then[CHANNEL_STATE] + n * self.step * then[CHANNEL_RATE]
         miss_free = np.abs(free - now[CHANNEL_STATE])
+        self._judged(t, miss_ref, miss_free, judging)
+
+    def _judged(self, t: float, miss_ref: np.ndarray, miss_free: np.ndarray,
+                judging: tuple) -> None:  # fmt: skip
+        """Take the replay's misses into the trust; a channel found not tracked keeps being
+        judged with the model ``judging`` that found it."""
         was = self.trust.followed.copy()
         self.trust.update(t, miss_ref, miss_free)
         for c in np.flatnonzero(was & ~self.trust.followed):
@@ -1097,13 +1167,17 @@ class Anticipator:
         cfg = self.config
         hist = self.history
         paths = np.empty((len(CANDIDATES) + 1, len(self.poses), 3))
-        paths[0] = model_positions
-        paths[1] = turn_positions(measured, coupling, self.poses)
-        paths[2] = measured[POSITION] + np.outer(self.poses, measured[VELOCITY])
-        paths[3] = measured[POSITION]
         recent = hist.measured[hist.last(cfg.centroid_window)]
-        paths[4] = (recent[:, POSITION].mean(axis=0) if len(recent)
-                    else measured[POSITION])  # fmt: skip
+        if COMPILED:
+            kernels_combine.candidate_paths(measured, coupling, self.poses, recent,
+                                            model_positions, paths)  # fmt: skip
+        else:
+            paths[0] = model_positions
+            paths[1] = turn_positions(measured, coupling, self.poses)
+            paths[2] = measured[POSITION] + np.outer(self.poses, measured[VELOCITY])
+            paths[3] = measured[POSITION]
+            paths[4] = (recent[:, POSITION].mean(axis=0) if len(recent)
+                        else measured[POSITION])  # fmt: skip
         trust = self.trust.status()
         allowed = np.ones(len(CANDIDATES), dtype=bool)
         if self.trust.grounded:
@@ -1115,16 +1189,25 @@ class Anticipator:
         else:
             w = np.zeros((len(self.poses), len(CANDIDATES)))
             w[:, 0 if allowed[0] else CANDIDATES.index('hold')] = 1.0
-        published = np.einsum('km,mkd->kd', w, paths[:-1])
         p0, v0 = (measured[POSITION], measured[VELOCITY]) if center is None else center
-        published = clip_to_envelope(p0, v0, self.poses, published,
-                                     cfg.max_speed, cfg.max_acceleration)  # fmt: skip
-        paths[-1] = published
-        # the scale of the errors: how much the candidates disagree, plus a floor
-        gap = paths[:-1][allowed] - published
-        spread = np.sqrt(np.mean(np.sum(gap**2, axis=-1), axis=0))
-        scales = spread + SCALE_FLOOR + SCALE_GROWTH * self.poses
-        radius = self.radius.radii(scales)
+        if COMPILED:
+            scales, radius = np.empty(len(self.poses)), np.empty(len(self.poses))
+            kernels_combine.publish(w, paths, p0, v0, self.poses, cfg.max_speed,
+                                    cfg.max_acceleration, allowed, scales)  # fmt: skip
+            published = paths[-1]
+            r = self.radius
+            kernels_combine.coverage_radii(r._errors, r._count, r.level, r.prior, r.offsets,
+                                           r.min_errors, scales, radius)  # fmt: skip
+        else:
+            published = np.einsum('km,mkd->kd', w, paths[:-1])
+            published = clip_to_envelope(p0, v0, self.poses, published,
+                                         cfg.max_speed, cfg.max_acceleration)  # fmt: skip
+            paths[-1] = published
+            # the scale of the errors: how much the candidates disagree, plus a floor
+            gap = paths[:-1][allowed] - published
+            spread = np.sqrt(np.mean(np.sum(gap**2, axis=-1), axis=0))
+            scales = spread + SCALE_FLOOR + SCALE_GROWTH * self.poses
+            radius = self.radius.radii(scales)
         if not self.trust.grounded:
             # a vehicle at rest is predicted by every candidate alike: the guard and the radius
             # learn from flight only
@@ -1141,5 +1224,7 @@ class Anticipator:
             w = np.zeros((len(self.poses), m))
             w[:, int(np.flatnonzero(allowed)[0])] = 1.0
             return w
+        if COMPILED:
+            return compiled_weights(g, m, allowed)
         cross = g.expected_cross()[:, :m, :m]
         return (yield SimplexWeights(cross, allowed))

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cloe_ros.core.anticipation import Propagation, run, stack_fields
+from cloe_ros.core import kernels_models
+from cloe_ros.core.anticipation import COMPILED, Propagation, run, stack_fields
 from cloe_ros.core.model import (
     BLOCKS,
     N_REFERENCES,
@@ -176,6 +177,10 @@ class Predictor:
         refs = plan_references(r_now, plan, self.config.step * np.arange(n))
         if offsets is not None:
             refs += offsets
+        if COMPILED:
+            out = np.empty((n, N_STATES))
+            kernels_models.propagate_one(ad, bd, np.asarray(zeta0, dtype=float), refs, out)
+            return out
         return (yield Propagation(ad, bd, np.asarray(zeta0, dtype=float), refs))
 
 
@@ -219,6 +224,11 @@ def fit_reference_offset_steps(
 ):
     """:func:`fit_reference_offset` as steps (:func:`~cloe_ros.core.anticipation.run`): the fit
     is a request (:class:`OffsetFit`)."""
+    if COMPILED:  # (its own checks: zeros for too short or a non-finite window)
+        out = np.empty(N_REFERENCES)
+        if kernels_models.recent_offset_one(ad, bd, states, refs, ridge, out):
+            raise np.linalg.LinAlgError('the offset fit failed (singular matrix)')
+        return out
     if len(states) < 2 or not (np.isfinite(states).all() and np.isfinite(refs).all()):
         return np.zeros(N_REFERENCES)
     return (yield OffsetFit(ad, bd, states, refs, ridge))

@@ -3,7 +3,9 @@
     .venv/bin/python scripts/swarm_benchmark.py --vehicles 10 100 --duration 20 [--batch-period S]
 
 For each N: one process publishes N vehicles' ``/uavK/odom`` at 100 Hz and ``/uavK/reference`` at
-10 Hz (a circle, raw CDR, stamped with the wall clock). It is received first by a do-nothing
+10 Hz (a circle, raw CDR, stamped with the wall clock; each tick's messages computed for all
+vehicles at once, so that the load generator takes little of the machine). It is received first
+by a do-nothing
 subscriber (raw subscriptions on rclpy's EventsExecutor: the floor of receiving them in Python),
 then by one ``cloe_inference`` node (the installed package, cloe_iv, ``vehicles`` listing them).
 Printed per run: messages received of those sent, CPU time of the receiving process per message
@@ -16,7 +18,9 @@ on the machine and its load: compare the node's column with the floor's in the s
 (EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits
 the vehicles over K nodes (``shard_index`` / ``shard_count``, each its own process, as across
 hosts): the node's columns are then the K nodes together (CPU summed, the largest ``busy`` and
-``late_s`` of any).
+``late_s`` of any). ``--relay`` also runs, under the same load, a node that only receives and
+publishes each odometry message back as the vehicle's ``cloe/state`` (no estimation): what an
+inference node whose engine cost nothing would deliver, and its CPU per message.
 
     .venv/bin/python scripts/swarm_benchmark.py --offline bags/position [--repeat 3]
 

@@ -18,12 +18,14 @@ baseline loops, OpenBLAS's Nehalem kernels) the outputs are bitwise those of tha
   adds the first term to the sum of the rest, and a sum along a strided axis adds from its
   first entry on.
 
-What stays in numpy: LAPACK's solves and decompositions (the identifier's periodic solve and
-excitation measures, the simplex weights), and the products over many terms that OpenBLAS sums
-in its own blocked order (the harmonic fits' Gram matrices). Equivalent small-matrix code is not
-enough there: the identifier's systems are ill-conditioned along the directions the flight does
-not excite, and a compiled LU and Jacobi eigensolver moved the golden outputs by up to 6e-9
-(EVALUATION.md, section 4).
+What stays in numpy here: LAPACK's solves and decompositions of the identifier (its periodic
+solve and excitation measures), and the products over many terms that OpenBLAS sums in its own
+blocked order. Equivalent small-matrix code is not enough there: the identifier's systems are
+ill-conditioned along the directions the flight does not excite, and a compiled LU and Jacobi
+eigensolver moved the golden outputs by up to 6e-9 (EVALUATION.md, section 4). The kernels of
+the predictions (:mod:`~cloe_ros.core.kernels_models`, :mod:`~cloe_ros.core.kernels_ensemble`,
+:mod:`~cloe_ros.core.kernels_combine`) call the routines numpy calls instead, in numpy's own
+OpenBLAS (:mod:`~cloe_ros.core.blas`), which gives numpy's bits.
 
 The kernels compile when this module is imported (explicit signatures) and are cached on disk
 beside it (``cache=True``), so no message ever waits on a compile: the first import on a

@@ -109,12 +109,27 @@ def publish(n: int, duration: float) -> None:
     rclpy.shutdown()
 
 
+def _serve(node, duration: float, count: list[int]) -> None:
+    """Spin ``node`` on an EventsExecutor until the run is done (``SWARM_DONE`` exists, or
+    ``duration`` + 40 s), print how many messages ``count`` counted, and shut rclpy down."""
+    import rclpy
+    from rclpy.experimental import EventsExecutor
+
+    executor = EventsExecutor()
+    executor.add_node(node)
+    end = time.monotonic() + duration + 40.0
+    while time.monotonic() < end and not Path(os.environ['SWARM_DONE']).exists():
+        executor.spin_once(timeout_sec=0.1)
+    print(f'received {count[0]}', flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
 def floor(n: int, duration: float) -> None:
     """The do-nothing subscriber: counts what it receives, prints the count at the end."""
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry
-    from rclpy.experimental import EventsExecutor
 
     from cloe_ros.ros.common import qos
 
@@ -129,14 +144,7 @@ def floor(n: int, duration: float) -> None:
                                      raw=True) for k in range(n)]  # fmt: skip
     subs += [node.create_subscription(PoseStamped, f'/uav{k}/reference', callback,
                                       qos(depth=100), raw=True) for k in range(n)]  # fmt: skip
-    executor = EventsExecutor()
-    executor.add_node(node)
-    end = time.monotonic() + duration + 40.0
-    while time.monotonic() < end and not Path(os.environ['SWARM_DONE']).exists():
-        executor.spin_once(timeout_sec=0.1)
-    print(f'received {count[0]}', flush=True)
-    node.destroy_node()
-    rclpy.shutdown()
+    _serve(node, duration, count)
 
 
 def relay(n: int, duration: float) -> None:
@@ -147,7 +155,6 @@ def relay(n: int, duration: float) -> None:
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry
-    from rclpy.experimental import EventsExecutor
 
     from cloe_ros.ros.common import qos
 
@@ -171,14 +178,7 @@ def relay(n: int, duration: float) -> None:
                                  raw=True)  # fmt: skip
         node.create_subscription(PoseStamped, f'/uav{k}/reference', drop, qos(depth=1000),
                                  raw=True)  # fmt: skip
-    executor = EventsExecutor()
-    executor.add_node(node)
-    end = time.monotonic() + duration + 40.0
-    while time.monotonic() < end and not Path(os.environ['SWARM_DONE']).exists():
-        executor.spin_once(timeout_sec=0.1)
-    print(f'received {count[0]}', flush=True)
-    node.destroy_node()
-    rclpy.shutdown()
+    _serve(node, duration, count)
 
 
 def listen(n: int, watch: str) -> None:

@@ -209,7 +209,7 @@ if AVAILABLE:
                 work_a[j, i] = a[i, j]
             for j in range(k):
                 work_b[j, i] = b[i, j]
-        sizes = np.empty(4, np.int64)
+        sizes = np.empty(3, np.int64)  # n, k, info
         sizes[0], sizes[1], sizes[2] = n, k, 0
         _dgesv(sizes[0:].ctypes, sizes[1:].ctypes, work_a.ctypes, sizes[0:].ctypes,
                pivots.ctypes, work_b.ctypes, sizes[0:].ctypes, sizes[2:].ctypes)

@@ -39,7 +39,7 @@ import math
 
 import numpy as np
 
-from cloe_ros.core import blas
+from cloe_ros.core import blas, kernels
 from cloe_ros.core.kernels import Compiler
 
 _compiled = Compiler(__name__, 'cloe_ros.core.kernels_combine')
@@ -174,21 +174,7 @@ def interp_one(xp, fp, x):
         return fp[n - 1]
     if x < xp[0]:
         return fp[0]
-    j = 0
-    if n <= 4:
-        j = 1
-        while j < n and x >= xp[j]:
-            j += 1
-        j -= 1
-    else:
-        low, high = 0, n  # the last xp[j] <= x
-        while low < high:
-            mid = (low + high) >> 1
-            if xp[mid] <= x:
-                low = mid + 1
-            else:
-                high = mid
-        j = low - 1
+    j = kernels._count_not_after(xp, x) - 1  # the last xp[j] <= x
     if j == n - 1 or xp[j] == x:
         return fp[j]
     slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])

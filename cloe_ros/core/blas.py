@@ -12,7 +12,12 @@ numpy passes:
   ``gemm`` otherwise, its plain loop where BLAS cannot take the strides);
 * :func:`solve` is ``np.linalg.solve`` (``dgesv`` on Fortran-ordered copies);
 * :func:`lstsq` is ``np.linalg.lstsq(a, b, rcond=None)`` (``dgelsd``, with numpy's workspace
-  query and default ``rcond``).
+  query and default ``rcond``);
+* :func:`inv` is ``np.linalg.inv`` (``dgesv`` on the identity), :func:`eigh` is
+  ``np.linalg.eigh`` (``dsyevd``, eigenvectors, lower triangle) and :func:`svd_values` is
+  ``np.linalg.svd(a, compute_uv=False)`` (``dgesdd``, values only), each with numpy's workspace
+  query (:func:`eigh_workspace`, :func:`svd_workspace`: once per size, as numpy makes it once per
+  call).
 
 The routines are found by name in numpy's OpenBLAS (the ``scipy-openblas64`` library of
 numpy's wheels: symbols ``scipy_<name>64_``, 64-bit integers). :data:`AVAILABLE` says whether
@@ -30,7 +35,8 @@ import numpy as np
 
 PREFIX, SUFFIX = 'scipy_', '64_'
 #: The Fortran routines and CBLAS functions the kernels call.
-ROUTINES = ('dgesv', 'dgelsd', 'cblas_dgemv', 'cblas_dgemm', 'cblas_dsyrk', 'cblas_ddot')
+ROUTINES = ('dgesv', 'dgelsd', 'dsyevd', 'dgesdd', 'cblas_dgemv', 'cblas_dgemm', 'cblas_dsyrk',
+            'cblas_ddot')
 
 
 def _find_library() -> str | None:
@@ -70,6 +76,13 @@ if AVAILABLE:
     _dgelsd = types.ExternalFunction(symbol('dgelsd'), types.void(
         _P(_I), _P(_I), _P(_I), _P(_D), _P(_I), _P(_D), _P(_I), _P(_D), _P(_D), _P(_I),
         _P(_D), _P(_I), _P(_I), _P(_I)))
+    # (the character arguments' hidden lengths last, by value, as gfortran passes them)
+    _dsyevd = types.ExternalFunction(symbol('dsyevd'), types.void(
+        _P(types.uint8), _P(types.uint8), _P(_I), _P(_D), _P(_I), _P(_D), _P(_D), _P(_I), _P(_I),
+        _P(_I), _P(_I), _I, _I))
+    _dgesdd = types.ExternalFunction(symbol('dgesdd'), types.void(
+        _P(types.uint8), _P(_I), _P(_I), _P(_D), _P(_I), _P(_D), _P(_D), _P(_I), _P(_D), _P(_I),
+        _P(_D), _P(_I), _P(_I), _P(_I), _I))
     _dgemv = types.ExternalFunction(symbol('cblas_dgemv'), types.void(
         _C, _C, _I, _I, _D, _P(_D), _I, _P(_D), _I, _D, _P(_D), _I))
     _dgemm = types.ExternalFunction(symbol('cblas_dgemm'), types.void(
@@ -254,3 +267,105 @@ if AVAILABLE:
             for j in range(k):
                 out[i, j] = fb[j, i]
         return ints[7]
+
+    @_compiled(f'int64({_A2}, {_A2}, int64[::1])')
+    def inv(a, out, pivots):
+        """``out`` (n, n) = ``np.linalg.inv(a)``: ``dgesv`` of a Fortran-ordered copy of ``a``
+        on the identity (``pivots`` (n,) int64). Returns LAPACK's ``info`` (> 0: ``a`` is
+        singular, where numpy raises)."""
+        n = a.shape[0]
+        fa, fb = np.empty((n, n)), np.zeros((n, n))
+        for i in range(n):
+            fb[i, i] = 1.0
+            for j in range(n):
+                fa[j, i] = a[i, j]
+        sizes = np.empty(3, np.int64)  # n, n, info
+        sizes[0], sizes[1], sizes[2] = n, n, 0
+        _dgesv(sizes[0:].ctypes, sizes[1:].ctypes, fa.ctypes, sizes[0:].ctypes, pivots.ctypes,
+               fb.ctypes, sizes[0:].ctypes, sizes[2:].ctypes)
+        for i in range(n):
+            for j in range(n):
+                out[i, j] = fb[j, i]
+        return sizes[2]
+
+    _JOBZ_V, _JOBZ_N, _UPLO_L = ord('V'), ord('N'), ord('L')
+
+    @_compiled('int64[::1](int64)')
+    def eigh_workspace(n):
+        """numpy's workspace of ``dsyevd`` for ``eigh`` of (n, n) matrices: ``[lwork, liwork]``
+        from LAPACK's query."""
+        chars = np.array([_JOBZ_V, _UPLO_L], np.uint8)
+        ints = np.empty(5, np.int64)  # n, lda, lwork, liwork, info
+        ints[0], ints[1], ints[2], ints[3], ints[4] = n, max(n, 1), -1, -1, 0
+        a, w, query = np.empty(max(n * n, 1)), np.empty(max(n, 1)), np.empty(1)
+        iquery = np.empty(1, np.int64)
+        _dsyevd(chars[0:].ctypes, chars[1:].ctypes, ints[0:].ctypes, a.ctypes, ints[1:].ctypes,
+                w.ctypes, query.ctypes, ints[2:].ctypes, iquery.ctypes, ints[3:].ctypes,
+                ints[4:].ctypes, 1, 1)  # fmt: skip
+        out = np.empty(2, np.int64)
+        out[0], out[1] = int(query[0]), iquery[0]
+        return out
+
+    @_compiled(f'int64({_A2}, {_A1}, {_A2}, int64[::1], float64[::1], int64[::1])')
+    def eigh(a, w, v, sizes, work, iwork):
+        """``w`` (n,), ``v`` (n, n) = ``np.linalg.eigh(a)``: ``dsyevd`` ('V', lower triangle)
+        on a Fortran-ordered copy of ``a``, with the workspace ``work`` and ``iwork`` of
+        :func:`eigh_workspace` (``sizes``: that function's result). Returns LAPACK's ``info``
+        (> 0: no convergence, where numpy raises)."""
+        n = a.shape[0]
+        fa = np.empty((n, n))
+        for i in range(n):
+            for j in range(n):
+                fa[j, i] = a[i, j]
+        chars = np.array([_JOBZ_V, _UPLO_L], np.uint8)
+        ints = np.empty(5, np.int64)
+        ints[0], ints[1], ints[2], ints[3], ints[4] = n, max(n, 1), sizes[0], sizes[1], 0
+        vals = np.empty(n)
+        _dsyevd(chars[0:].ctypes, chars[1:].ctypes, ints[0:].ctypes, fa.ctypes, ints[1:].ctypes,
+                vals.ctypes, work.ctypes, ints[2:].ctypes, iwork.ctypes, ints[3:].ctypes,
+                ints[4:].ctypes, 1, 1)  # fmt: skip
+        if ints[4] == 0:
+            for i in range(n):
+                w[i] = vals[i]
+                for j in range(n):
+                    v[i, j] = fa[j, i]
+        return ints[4]
+
+    @_compiled('int64(int64)')
+    def svd_workspace(n):
+        """numpy's ``lwork`` of ``dgesdd`` for the singular values of (n, n) matrices, from
+        LAPACK's query (at least 1)."""
+        chars = np.array([_JOBZ_N], np.uint8)
+        ints = np.empty(6, np.int64)  # m, n, lda, ldu, ldvt, lwork
+        ints[0], ints[1], ints[2], ints[3], ints[4], ints[5] = n, n, max(n, 1), max(n, 1), 1, -1
+        info = np.zeros(1, np.int64)
+        a, s, u, vt = np.empty(max(n * n, 1)), np.empty(max(n, 1)), np.empty(1), np.empty(1)
+        query, iwork = np.empty(1), np.empty(max(8 * n, 1), np.int64)
+        _dgesdd(chars.ctypes, ints[0:].ctypes, ints[1:].ctypes, a.ctypes, ints[2:].ctypes,
+                s.ctypes, u.ctypes, ints[3:].ctypes, vt.ctypes, ints[4:].ctypes, query.ctypes,
+                ints[5:].ctypes, iwork.ctypes, info.ctypes, 1)  # fmt: skip
+        return max(1, int(query[0]))
+
+    @_compiled(f'int64({_A2}, {_A1}, float64[::1], int64[::1])')
+    def svd_values(a, s, work, iwork):
+        """``s`` (n,) = ``np.linalg.svd(a, compute_uv=False)`` of a square ``a``: ``dgesdd``
+        ('N') on a Fortran-ordered copy, with the workspace ``work`` (:func:`svd_workspace`
+        long) and ``iwork`` (8 n). Returns LAPACK's ``info`` (> 0: no convergence, where
+        numpy raises)."""
+        n = a.shape[0]
+        fa = np.empty((n, n))
+        for i in range(n):
+            for j in range(n):
+                fa[j, i] = a[i, j]
+        chars = np.array([_JOBZ_N], np.uint8)
+        ints = np.empty(7, np.int64)  # m, n, lda, ldu, ldvt, lwork, info
+        ints[0], ints[1], ints[2], ints[3], ints[4] = n, n, max(n, 1), max(n, 1), 1
+        ints[5], ints[6] = work.shape[0], 0
+        vals, u, vt = np.empty(n), np.empty(1), np.empty(1)
+        _dgesdd(chars.ctypes, ints[0:].ctypes, ints[1:].ctypes, fa.ctypes, ints[2:].ctypes,
+                vals.ctypes, u.ctypes, ints[3:].ctypes, vt.ctypes, ints[4:].ctypes, work.ctypes,
+                ints[5:].ctypes, iwork.ctypes, ints[6:].ctypes, 1)  # fmt: skip
+        if ints[6] == 0:
+            for i in range(n):
+                s[i] = vals[i]
+        return ints[6]

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg
 
-from cloe_ros.core import kernels
+from cloe_ros.core import kernels, kernels_identifier
 from cloe_ros.core.model import (
     BLOCK_SLICES,
     BLOCKS,
@@ -317,6 +317,18 @@ STATISTICS = ('cross_e', 'gram_xi', 'gram_phi', 'cross', 'gram_xi_long')
 CROSS_E, GRAM_XI, GRAM_PHI, CROSS, GRAM_XI_LONG = range(len(STATISTICS))
 _SHORT, _LONG = slice(0, 3), slice(3, 5)
 
+#: Whether the periodic solve and excitation measures run compiled
+#: (:mod:`~cloe_ros.core.kernels_identifier`, bit for bit the numpy code of
+#: :meth:`IvIdentifier._solve` and :meth:`IvIdentifier._update_excitation`); False runs the numpy
+#: code (numpy without its OpenBLAS; the kernels' tests set it to compare the two).
+COMPILED = kernels_identifier.AVAILABLE
+_ROW_SIZES = np.ascontiguousarray(ROW_SIZE, dtype=np.intp)
+_SIZES = np.unique(_ROW_SIZES)
+_COUPLING_ROWS = np.array(COUPLING_ROWS, dtype=np.intp)
+_LOOP_ROWS = np.array(LOOP_ROWS, dtype=np.intp)
+_BLOCK_ROWS = np.arange(len(BLOCKS), dtype=np.intp)  # (block p's parameters are row p's)
+_BLOCK_STARTS = np.array([sl.start for sl in BLOCK_SLICES], dtype=np.intp)
+
 
 def filter_matrices(bandwidth: float, highpass: float, h: float):
     """Tustin discretisation of ``F`` and ``sF`` (common state): ``(Ad, Bd, Cf, Df, Cd, Dd)``.
@@ -376,6 +388,7 @@ class _StepWork:
     increments: np.ndarray
     ones: np.ndarray
     ones_rows: np.ndarray
+    whole: np.ndarray
     excited: np.ndarray
     phi_t: np.ndarray
     xi_t: np.ndarray
@@ -390,7 +403,8 @@ class _StepWork:
             f=np.zeros((n, N_CHANNELS + 1)), d=np.zeros((n, N_CHANNELS)),
             phi=np.zeros((n, N_ROWS * WIDTH)), xi=np.zeros((n, N_ROWS * WIDTH)),
             y=np.zeros((n, N_ROWS)), increments=np.zeros((3, N_PACKED, n)), ones=np.ones(n),
-            ones_rows=np.ones((n, N_ROWS)), excited=np.zeros((n, N_ROWS), dtype=bool),
+            ones_rows=np.ones((n, N_ROWS)), whole=np.ones(n, dtype=bool),
+            excited=np.zeros((n, N_ROWS), dtype=bool),
             phi_t=np.zeros((N_ROWS * WIDTH, n)), xi_t=np.zeros((N_ROWS * WIDTH, n)),
             forget=np.zeros((N_ROWS, n)), u=np.zeros(N_CHANNELS), x=np.zeros(N_STATES),
             fx=np.zeros((N_CHANNELS, 3)),
@@ -633,16 +647,16 @@ class IvIdentifier(Rows):
         cfg, h = self.config, self.h
         if active is not None:
             active = np.asarray(active, dtype=bool)
-            if active.ndim == 1:
-                active = np.broadcast_to(active[:, None], (active.shape[0], N_ROWS))
             if active.all():
                 active = None
+            elif active.ndim == 1:
+                active = np.broadcast_to(active[:, None], (active.shape[0], N_ROWS))
         zeta = np.ascontiguousarray(zeta, dtype=float)
         r = np.ascontiguousarray(r, dtype=float)
-        n, w = len(zeta), self._work
+        w = self._work
         self._t += h
         decay = np.exp(-cfg.highpass * self._t)
-        whole = np.ones(n, dtype=bool) if active is None else active.all(axis=1)
+        whole = w.whole if active is None else active.all(axis=1)
         # the statistics start once the filters' fast modes are gone; in a batch whose vehicles
         # started at different times, those still settling take part with no weight (nothing
         # added, nothing forgotten, no clock advanced)
@@ -819,6 +833,16 @@ class IvIdentifier(Rows):
         """
         sel = slice(None) if which is None else np.flatnonzero(which)
         w = self.config.prior_weight
+        if COMPILED:
+            failed = kernels_identifier.iv_solve(
+                np.arange(len(self._rows)) if which is None else sel, self._statistics_t,
+                STAT_PACKED, self.rhs, self._prior_norm, self._mask, w, TARGET_SCALE, ROW_SCALE,
+                _BLOCK_ROWS, _BLOCK_STARTS, _COUPLING_ROWS, _LOOP_ROWS, self._rows, self.theta,
+                self.coupling, self.loops,
+            )  # fmt: skip
+            if failed:
+                raise np.linalg.LinAlgError('Singular matrix')
+            return
         prior = self._prior_norm[sel]
         lhs = self.statistic(CROSS, sel) + w * np.eye(WIDTH)
         rhs = self.rhs[sel] + w * prior
@@ -842,6 +866,24 @@ class IvIdentifier(Rows):
             if not which.any():
                 return
         sel = slice(None) if which is None else np.flatnonzero(which)
+        # (the low-pass of the drift, below: its gain per update)
+        step = self._excitation_every * self.h
+        gain = min(1.0, step / DRIFT_TIME)
+        if COMPILED:
+            due = np.arange(len(self._rows)) if which is None else sel
+            failed = kernels_identifier.iv_excitation(
+                due, self._statistics_t, STAT_PACKED, self._rows, self._rows_slow,
+                self.weight_e, self.res2, self._mask, _ROW_SIZES, _SIZES, _COUPLING_ROWS,
+                cfg.prior_weight, 4.0 / cfg.bandwidth, QUIET, gain,
+                cfg.identified_uncertainty, cfg.unidentifiable_uncertainty,
+                cfg.excitation_threshold, cfg.estimate_coupling, self.excitation,
+                self.uncertainty, self.status,
+            )  # fmt: skip
+            if failed == kernels_identifier.EIGH_FAILED:
+                raise np.linalg.LinAlgError('Eigenvalues did not converge')
+            if failed == kernels_identifier.SVD_FAILED:
+                raise np.linalg.LinAlgError('SVD did not converge')
+            return
         rows = self._rows[sel]  # the current solution, normalised
         n = rows.shape[0]
         exc = np.zeros((n, N_ROWS))
@@ -889,9 +931,8 @@ class IvIdentifier(Rows):
         # |rows - their low-pass over DRIFT_TIME| relative to the row's size, bounds the
         # published uncertainty from below and keeps a moving row from being called identified;
         # it does not make it unidentifiable (a row converging fast from its prior moves too).
-        step = self._excitation_every * self.h
         slow = self._rows_slow[sel]
-        slow += min(1.0, step / DRIFT_TIME) * (rows - slow)
+        slow += gain * (rows - slow)
         self._rows_slow[sel] = slow
         drift = np.linalg.norm(rows - slow, axis=-1) / np.maximum(
             np.linalg.norm(rows, axis=-1), 1e-12

@@ -18,14 +18,16 @@ baseline loops, OpenBLAS's Nehalem kernels) the outputs are bitwise those of tha
   adds the first term to the sum of the rest, and a sum along a strided axis adds from its
   first entry on.
 
-What stays in numpy here: LAPACK's solves and decompositions of the identifier (its periodic
-solve and excitation measures), and the products over many terms that OpenBLAS sums in its own
-blocked order. Equivalent small-matrix code is not enough there: the identifier's systems are
-ill-conditioned along the directions the flight does not excite, and a compiled LU and Jacobi
-eigensolver moved the golden outputs by up to 6e-9 (EVALUATION.md, section 4). The kernels of
-the predictions (:mod:`~cloe_ros.core.kernels_models`, :mod:`~cloe_ros.core.kernels_ensemble`,
-:mod:`~cloe_ros.core.kernels_combine`) call the routines numpy calls instead, in numpy's own
-OpenBLAS (:mod:`~cloe_ros.core.blas`), which gives numpy's bits.
+What stays out of this module: LAPACK's solves and decompositions (the identifier's periodic
+solve and excitation measures, the predictions' fits), and the products over many terms that
+OpenBLAS sums in its own blocked order. Equivalent small-matrix code is not enough there: the
+identifier's systems are ill-conditioned along the directions the flight does not excite, and
+a compiled LU and Jacobi eigensolver moved the golden outputs by up to 6e-9 (EVALUATION.md,
+section 4). The kernels that need them (the identifier's excitation measures,
+:mod:`~cloe_ros.core.kernels_identifier`; the predictions', :mod:`~cloe_ros.core.kernels_models`,
+:mod:`~cloe_ros.core.kernels_ensemble`, :mod:`~cloe_ros.core.kernels_combine`) call the routines
+numpy calls instead, in numpy's own OpenBLAS (:mod:`~cloe_ros.core.blas`), which gives numpy's
+bits. The identifier's solve stays in numpy: its ``dgesv`` calls are most of its cost.
 
 The kernels compile when this module is imported (explicit signatures) and are cached on disk
 beside it (``cache=True``), so no message ever waits on a compile: the first import on a

@@ -78,3 +78,32 @@ def test_lstsq_is_numpys(m, n, k):
         out = np.empty((n, k))
         assert blas.lstsq(a, b, out) == 0
         np.testing.assert_array_equal(out, np.linalg.lstsq(a, b, rcond=None)[0])
+
+
+@pytest.mark.parametrize('n', [1, 2, 3, 5, 6])
+def test_eigh_svd_and_inv_are_numpys(n):
+    sizes, lwork = blas.eigh_workspace(n), blas.svd_workspace(n)
+    work, iwork = np.empty(sizes[0]), np.empty(sizes[1], np.int64)
+    svd_work, svd_iwork = np.empty(lwork), np.empty(8 * n, np.int64)
+    for trial in range(50):
+        x = RNG.standard_normal((n, n + 2)) * 10.0 ** RNG.uniform(-6, 6)
+        g = x @ x.T
+        view = np.zeros((n + 1, n + 1))[:n, :n]  # (a slice's strides, as the kernels pass)
+        view[...] = g if trial % 2 else RNG.standard_normal((n, n))
+        w, v = np.empty(n), np.empty((n, n))
+        assert blas.eigh(view, w, v, sizes, work, iwork) == 0
+        want_w, want_v = np.linalg.eigh(view)
+        np.testing.assert_array_equal(w, want_w)
+        np.testing.assert_array_equal(v, want_v)
+        s = np.empty(n)
+        assert blas.svd_values(view, s, svd_work, svd_iwork) == 0
+        np.testing.assert_array_equal(s, np.linalg.svd(view, compute_uv=False))
+        out = np.empty((n, n))
+        assert blas.inv(view, out, np.empty(n, np.int64)) == 0
+        np.testing.assert_array_equal(out, np.linalg.inv(view))
+
+
+def test_inv_says_singular_where_numpy_raises():
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.inv(np.ones((3, 3)))
+    assert blas.inv(np.ones((3, 3)), np.empty((3, 3)), np.empty(3, np.int64)) > 0

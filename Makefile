@@ -53,8 +53,8 @@ $(VENV)/.deps: requirements.txt | $(BIN)/python
 # started later waits on a compile)
 $(VENV)/.installed: $(VENV)/.deps $(SOURCES)
 	$(BIN)/pip install .
-	cd / && $(abspath $(BIN))/python -c 'import cloe_ros.core.kernels, cloe_ros.core.identifier, cloe_ros.core.anticipation'
-	$(BIN)/python -c 'import cloe_ros.core.kernels, cloe_ros.core.identifier, cloe_ros.core.anticipation'
+	cd / && $(abspath $(BIN))/python -c 'import cloe_ros.core.kernels, cloe_ros.core.kernels_covariance, cloe_ros.core.identifier, cloe_ros.core.anticipation'
+	$(BIN)/python -c 'import cloe_ros.core.kernels, cloe_ros.core.kernels_covariance, cloe_ros.core.identifier, cloe_ros.core.anticipation'
 	touch $@
 
 lint: $(VENV)/.installed

@@ -67,6 +67,31 @@ _ZH = slice(60, 156)  # (2, 4, 12): measurements, estimates
 _STATE_SIZE = 156
 
 
+#: Whether the update runs compiled (:mod:`~cloe_ros.core.kernels_covariance`, bit for bit the
+#: numpy code of :meth:`ErrorCovariance.update`): None until the first update loads the kernel
+#: (this module imports no numba itself), then True, or False where numpy's OpenBLAS is not
+#: found. False runs the numpy code (the tests set it to compare the two).
+COMPILED: bool | None = None
+_D3_ROW = D3.reshape(1, -1)
+_KERNEL = None
+
+
+def _kernel():
+    """The compiled update (:func:`~cloe_ros.core.kernels_covariance.covariance_update`), or
+    None where :data:`COMPILED` is False."""
+    global COMPILED, _KERNEL
+    if COMPILED is False:
+        return None
+    if _KERNEL is None:
+        from cloe_ros.core import kernels_covariance
+
+        COMPILED = kernels_covariance.AVAILABLE
+        if not COMPILED:
+            return None
+        _KERNEL = kernels_covariance.covariance_update
+    return _KERNEL
+
+
 def forgetting_factor(rho: np.ndarray) -> np.ndarray:
     """``f(rho) = E[d3 z d3 zeta_hat] / (g R)`` for an estimate ``sum_j g rho^j n_k-j`` (module
     docstring): 10 at ``rho = 1``, 20 at ``rho = 0``."""
@@ -149,6 +174,14 @@ class ErrorCovariance:
     def update(self, measured: np.ndarray, zeta_hat: np.ndarray, gain_l: np.ndarray) -> np.ndarray:
         """Take one step's measurement and estimate (12,) and the observer gains ``L`` (12,) it
         stepped with; returns :attr:`variance` (12,), the estimated ``E[(zeta_hat - zeta)^2]``."""
+        kernel = _kernel()
+        if kernel is not None:
+            counts = np.array([[self.count, self.count_d3, self._filled]], dtype=np.int64)
+            kernel(self._state[None], counts, _row(measured), _row(zeta_hat), _row(gain_l),
+                   _D3_ROW, self.step, self.alpha, self.warmup_steps, D3_NOISE, FLOOR,
+                   CEILING)  # fmt: skip
+            self.count, self.count_d3, self._filled = counts[0].tolist()
+            return self._state[_VAR]
         st = self._state
         e = measured - zeta_hat
         self.count += 1
@@ -188,7 +221,16 @@ class ErrorCovariance:
                              zip(covs, measured, zeta_hat, gain_l)])  # fmt: skip
         k, n = len(covs), len(D3)
         state = np.array([c._state for c in covs])  # (K, _STATE_SIZE)
-        counts = np.array([(c.count, c.count_d3, c._filled) for c in covs])
+        counts = np.array([(c.count, c.count_d3, c._filled) for c in covs], dtype=np.int64)
+        kernel = _kernel()
+        if kernel is not None:
+            kernel(state, counts, np.asarray(measured, dtype=float),
+                   np.asarray(zeta_hat, dtype=float), np.asarray(gain_l, dtype=float), _D3_ROW,
+                   first.step, first.alpha, first.warmup_steps, D3_NOISE, FLOOR,
+                   CEILING)  # fmt: skip
+            for c, st, (count, count_d3, filled) in zip(covs, state, counts.tolist()):
+                c._state, c.count, c.count_d3, c._filled = st, count, count_d3, filled
+            return state[:, _VAR]
         count = counts[:, 0] + 1
         e = measured - zeta_hat
         second = state[:, _SM]
@@ -221,6 +263,11 @@ class ErrorCovariance:
             c._state = state[i]
             c.count, c.count_d3, c._filled = int(count[i]), int(count_d3[i]), int(filled[i])
         return state[:, _VAR]
+
+
+def _row(x) -> np.ndarray:
+    """``x`` (12,) as a float (1, 12) array."""
+    return np.asarray(x, dtype=float).reshape(1, -1)
 
 
 def _third_difference(x: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cloe_ros.core import blas, covariance
 from cloe_ros.core.covariance import PRIOR_SIGMA, ErrorCovariance, odometry_covariance
 from cloe_ros.core.evaluation import GAUSSIAN_2SIGMA, covariance_coverage, run_engine
 from cloe_ros.core.kinematics import state_to_odometry
@@ -141,3 +142,43 @@ def test_the_statistics_of_many_vehicles_update_at_once_as_each_alone():
                 alone[i].update(measured[i], zeta_hat[i], gains[i]),
             )
     assert all(c.count_d3 > 50 for c in together)  # (the statistics, not only the prior)
+
+
+@pytest.mark.skipif(not blas.AVAILABLE, reason="numpy's OpenBLAS not found")
+def test_the_compiled_update_is_the_numpy_code_bit_for_bit():
+    """kernels_covariance.covariance_update against the numpy code of ErrorCovariance.update and
+    update_many: the same variances and statistics, step by step, through restarts, resets,
+    negative and non-finite gains and the warm-up."""
+    rng = np.random.default_rng(3)
+    k = 4
+    pairs = {compiled: [ErrorCovariance(0.01, warmup=0.05) for _ in range(k)]
+             for compiled in (True, False)}  # fmt: skip
+    try:
+        for step in range(400):
+            measured = rng.normal(size=(k, 12)) * 10.0 ** rng.uniform(-3, 1)
+            zeta_hat = measured + 0.01 * rng.normal(size=(k, 12))
+            gains = rng.uniform(-1.0, 20.0, size=(k, 12))
+            if step % 53 == 5:
+                gains[step % k, step % 12] = np.nan
+            which = [i for i in range(k) if rng.random() < 0.8] or [0]
+            out = {}
+            for compiled, covs in pairs.items():
+                covariance.COMPILED = compiled
+                if step % 97 == 13:
+                    covs[step % k].restart()
+                if step % 211 == 50:
+                    covs[1].reset()
+                if step % 3:
+                    out[compiled] = ErrorCovariance.update_many(
+                        [covs[i] for i in which], measured[which], zeta_hat[which], gains[which])
+                else:
+                    out[compiled] = np.array([covs[i].update(measured[i], zeta_hat[i], gains[i])
+                                              for i in which])  # fmt: skip
+            np.testing.assert_array_equal(out[True], out[False])
+            for a, b in zip(*pairs.values()):
+                np.testing.assert_array_equal(a._state, b._state)
+                assert (a.count, a.count_d3, a._filled) == (b.count, b.count_d3, b._filled)
+        assert covariance._KERNEL is not None  # (the compiled update ran)
+        assert all(c.count_d3 > 50 for c in pairs[True])  # (statistics, not only the prior)
+    finally:
+        covariance.COMPILED = None

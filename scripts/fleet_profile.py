@@ -5,7 +5,9 @@ of all of them (``--batch 0``: each vehicle at each of its messages), every outp
     .venv/bin/python scripts/fleet_profile.py --vehicles 10
     pip install pyinstrument; python -m pyinstrument scripts/fleet_profile.py --vehicles 10
 
-Prints the CPU time per odometry message (no DDS: what the node adds to the receiving).
+Prints the CPU time per odometry message (no DDS: what the node adds to the receiving), with
+one BLAS thread, as the nodes run (cloe_ros/threads.py: OpenBLAS's spinning threads would count
+in the process's CPU time, about doubling it at one vehicle).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from cloe_ros.core.fleet import Fleet
 from cloe_ros.io import cdr, messages
 from cloe_ros.io.config import DEFAULTS, build_configs
 from cloe_ros.io.outputs import OutputEncoder
+from cloe_ros.threads import limit_blas_threads
 from test.core.test_engine import in_time_order, simulated_flight
 from test.core.test_engine import messages as flight_messages
 
@@ -33,6 +36,7 @@ def main() -> int:
                         help='1: one batch per odometry tick; 0: each vehicle alone')
     parser.add_argument('--inputs', type=int, default=3000, help='inputs per vehicle')
     args = parser.parse_args()
+    limit_blas_threads()  # as the nodes do
     engine_config, output_config = build_configs(dict(DEFAULTS))
     odoms, refs = flight_messages(simulated_flight())
     raws = [(kind, cdr.encode_odometry(m) if kind == 'odom' else cdr.encode_pose_stamped(m))

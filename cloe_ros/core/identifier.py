@@ -386,9 +386,14 @@ class _StepWork:
     xi: np.ndarray
     y: np.ndarray
     increments: np.ndarray
-    ones: np.ndarray
-    ones_rows: np.ndarray
+    active: np.ndarray
     whole: np.ndarray
+    gate: np.ndarray
+    weight: np.ndarray
+    settled: np.ndarray
+    mu_e: np.ndarray
+    due: np.ndarray
+    due_model: np.ndarray
     excited: np.ndarray
     phi_t: np.ndarray
     xi_t: np.ndarray
@@ -402,8 +407,10 @@ class _StepWork:
         return cls(
             f=np.zeros((n, N_CHANNELS + 1)), d=np.zeros((n, N_CHANNELS)),
             phi=np.zeros((n, N_ROWS * WIDTH)), xi=np.zeros((n, N_ROWS * WIDTH)),
-            y=np.zeros((n, N_ROWS)), increments=np.zeros((3, N_PACKED, n)), ones=np.ones(n),
-            ones_rows=np.ones((n, N_ROWS)), whole=np.ones(n, dtype=bool),
+            y=np.zeros((n, N_ROWS)), increments=np.zeros((3, N_PACKED, n)),
+            active=np.ones((n, N_ROWS), dtype=bool), whole=np.ones(n, dtype=bool),
+            gate=np.ones((n, N_ROWS)), weight=np.ones(n), settled=np.ones(n, dtype=bool),
+            mu_e=np.ones(n), due=np.zeros(n, dtype=bool), due_model=np.zeros(n, dtype=bool),
             excited=np.zeros((n, N_ROWS), dtype=bool),
             phi_t=np.zeros((N_ROWS * WIDTH, n)), xi_t=np.zeros((N_ROWS * WIDTH, n)),
             forget=np.zeros((N_ROWS, n)), u=np.zeros(N_CHANNELS), x=np.zeros(N_STATES),
@@ -645,63 +652,51 @@ class IvIdentifier(Rows):
         while the vehicle does not track that row's reference: the closed-loop model does not
         hold)."""
         cfg, h = self.config, self.h
+        w = self._work
         if active is not None:
             active = np.asarray(active, dtype=bool)
             if active.all():
                 active = None
             elif active.ndim == 1:
-                active = np.broadcast_to(active[:, None], (active.shape[0], N_ROWS))
+                active = np.repeat(active[:, None], N_ROWS, axis=1)
+            else:
+                active = np.ascontiguousarray(active)
         zeta = np.ascontiguousarray(zeta, dtype=float)
         r = np.ascontiguousarray(r, dtype=float)
-        w = self._work
         self._t += h
         decay = np.exp(-cfg.highpass * self._t)
-        whole = w.whole if active is None else active.all(axis=1)
-        # the statistics start once the filters' fast modes are gone; in a batch whose vehicles
-        # started at different times, those still settling take part with no weight (nothing
-        # added, nothing forgotten, no clock advanced)
-        settled = self._t >= self._settle
-        waiting = None if settled.all() else settled.astype(float)  # (None: none waits)
-        weight = w.ones if waiting is None else waiting
-        gate = w.ones_rows if active is None else np.ascontiguousarray(active, dtype=float)
-        kernels.iv_filter(
-            zeta, r, whole, decay, self._hist_z, self._hist_r, self._hist_active,
+        # The step in two compiled calls around the excitation measures (kernels.iv_step_filter,
+        # kernels.iv_step_long): the filters, the regressors and instruments, the short window,
+        # then the long window's normal equations, forgetting only while excited. The statistics
+        # start once the filters' fast modes are gone; in a batch whose vehicles started at
+        # different times, those still settling take part with no weight (nothing added, nothing
+        # forgotten, no clock advanced).
+        active = w.active if active is None else active
+        flags = kernels.iv_step_filter(
+            zeta, r, w.whole, decay, self._hist_z, self._hist_r, self._hist_active,
             self._hist_next, self._hist_count, self._aux_ad, self._aux_bd, self.x_aux,
             self._last_r, self._aux_shift, self._fx, self._cf, self._df, self._cd, self._dd,
             self._ad_t, self._bd, STATE_SCALE, REFERENCE_SCALE, PHI_GATHER[0], PHI_GATHER[1],
             XI_GATHER[0], XI_GATHER[1], self._mask_flat, Y_F_GATHER_C, Y_F_GATHER_A,
-            Y_D_GATHER_C, Y_D_GATHER_A, gate, weight, h, w.f, w.d, w.phi, w.xi, w.y, w.u, w.x,
-            w.fx,
+            Y_D_GATHER_C, Y_D_GATHER_A, w.gate, w.weight, h, w.f, w.d, w.phi, w.xi, w.y, w.u,
+            w.x, w.fx, self._t, self._settle, active, self._excitation_every, self._mu_e,
+            _flat(self._rows), STAT_LEFT, STAT_RIGHT, self._statistics_t[_SHORT], self.res2,
+            self.weight_e, self._steps, w.increments, w.phi_t, w.xi_t, w.settled, w.mu_e, w.due,
         )  # fmt: skip
-        if not settled.any():
+        if not flags & kernels.ANY_SETTLED:
             return
-        mu_e = np.where(settled, self._mu_e, 1.0)
-        kernels.iv_short_window(
-            w.phi, w.xi, w.y, _flat(self._rows), STAT_LEFT, STAT_RIGHT, h, mu_e, weight,
-            self._statistics_t[_SHORT], self.res2, self.weight_e, self._steps, w.increments,
-            w.phi_t, w.xi_t,
+        if flags & kernels.ANY_DUE:
+            self._update_excitation(None if flags & kernels.ALL_DUE else w.due.copy())
+        flags = kernels.iv_step_long(
+            w.xi, w.y, self.excitation, cfg.excitation_threshold, active, w.settled, self._mu, h,
+            STAT_ROW, w.increments, self._statistics_t[_LONG], _flat(self.rhs), w.excited,
+            w.forget, self._steps, self._solve_every, self._since_aux, cfg.aux_period - 1e-9,
+            w.due, w.due_model,
         )  # fmt: skip
-        due = (self._steps % self._excitation_every == 1) | (self._excitation_every == 1)
-        _for_due(self._update_excitation, due if waiting is None else due & settled)
-        excited = w.excited  # (N, rows)
-        np.greater_equal(self.excitation, cfg.excitation_threshold, out=excited)
-        if active is not None:
-            excited &= active
-        if waiting is not None:
-            excited &= settled[:, None]
-        # long-window normal equations, forgetting only while excited
-        kernels.iv_long_window(w.xi, w.y, excited, self._mu, h, STAT_ROW, w.increments,
-                               self._statistics_t[_LONG], _flat(self.rhs), w.forget)  # fmt: skip
-        due = (self._steps % self._solve_every == 0) | (self._solve_every == 1)
-        _for_due(self._solve, due if waiting is None else due & settled)
-
-        if waiting is None:
-            self._since_aux += h
-        else:
-            self._since_aux[settled] += h
-        due = self._since_aux >= cfg.aux_period - 1e-9
-        self._since_aux[due] = 0.0
-        _for_due(self._update_model, due)
+        if flags & kernels.ANY_DUE:
+            self._solve(None if flags & kernels.ALL_DUE else w.due.copy())
+        if flags & kernels.ANY_DUE_MODEL:
+            self._update_model(None if flags & kernels.ALL_DUE_MODEL else w.due_model.copy())
 
     def _update_model(self, which: np.ndarray | None = None) -> None:
         """Refresh the auxiliary model and the usable model (every ``aux_period``) of the
@@ -964,13 +959,6 @@ def _flat(a: np.ndarray) -> np.ndarray:
     out = a.view()
     out.shape = (len(a), -1)
     return out
-
-
-def _for_due(update, due: np.ndarray) -> None:
-    """``update(which)`` for the vehicles ``due`` (a mask (N,); passed as None when all are due,
-    so the update runs on the whole arrays), if any is."""
-    if due.any():
-        update(None if due.all() else due)
 
 
 def _inv_sqrt(g: np.ndarray) -> np.ndarray:

@@ -370,6 +370,114 @@ def iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs, forg
             rhs[n, j] = rhs[n, j] * m + xi[n, j] * h * y[n, j // width]
 
 
+#: What :func:`iv_step_filter` and :func:`iv_step_long` return: bit flags (any, all) of the
+#: vehicles settled and of those due for each periodic update.
+ANY_SETTLED, ALL_SETTLED, ANY_DUE, ALL_DUE = 1, 2, 4, 8
+ANY_DUE_MODEL, ALL_DUE_MODEL = 16, 32
+
+
+@_compiled('int64(boolean[::1], boolean[::1])')
+def _flags(mask, settled):
+    """``ANY_DUE | ALL_DUE`` of ``mask`` (N,) restricted to the vehicles ``settled``."""
+    any_, all_ = False, True
+    for n in range(mask.shape[0]):
+        mask[n] = mask[n] and settled[n]
+        any_ |= mask[n]
+        all_ &= mask[n]
+    return (ANY_DUE if any_ else 0) | (ALL_DUE if all_ else 0)
+
+
+_IV_STEP_FILTER = (
+    _IV_FILTER[:-1].replace('void(', 'int64(', 1)
+    # the clock (N,), the settling time, the rows active (N, rows), the excitation measures'
+    # period in steps, the short window's forgetting; the short window's arguments after phi,
+    # xi, y (see iv_short_window); work: settled (N,), mu_e (N,); out: the vehicles due for the
+    # excitation measures (N,)
+    + f', {_F1}, float64, boolean[:, ::1], int64, float64, {_F2}, {_I1}, {_I1},'
+    f' float64[:, :, ::1], {_F2}, {_F1}, int64[::1], float64[:, :, ::1], {_F2}, {_F2},'
+    ' boolean[::1], float64[::1], boolean[::1])'
+)
+
+
+@_compiled(_IV_STEP_FILTER)
+def iv_step_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, hist_count,
+                   aux_ad, aux_bd, x_aux, last_r, aux_shift, fx, cf, df, cd, dd, ad_t, bd,
+                   state_scale, reference_scale, phi_c, phi_a, xi_c, xi_a, mask, yf_c, yf_a,
+                   yd_c, yd_a, gate, weight, h, f, d, phi, xi, y, u, x_new, fx_new, t, settle,
+                   active, every, mu_e_settled, rows, left, right, short, res2, weight_e, steps,
+                   increments, phi_t, xi_t, settled, mu_e, due):  # fmt: skip
+    """The first part of :meth:`~cloe_ros.core.identifier.IvIdentifier.step` in one call: the
+    vehicles settled (``t >= settle``), the rows' gates and weights from ``active``,
+    :func:`iv_filter`, and once any vehicle is settled :func:`iv_short_window` and the vehicles
+    due for the excitation measures (``due``). Returns :data:`ANY_SETTLED` / :data:`ALL_SETTLED`
+    and :data:`ANY_DUE` / :data:`ALL_DUE` flags."""
+    n_vehicles, n_rows = active.shape
+    any_settled, all_settled = False, True
+    for n in range(n_vehicles):
+        settled[n] = t[n] >= settle
+        any_settled |= settled[n]
+        all_settled &= settled[n]
+        weight[n] = 1.0 if settled[n] else 0.0
+        mu_e[n] = mu_e_settled if settled[n] else 1.0
+        every_row = True
+        for p in range(n_rows):
+            gate[n, p] = 1.0 if active[n, p] else 0.0
+            every_row &= active[n, p]
+        whole[n] = every_row
+    iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, hist_count, aux_ad,
+              aux_bd, x_aux, last_r, aux_shift, fx, cf, df, cd, dd, ad_t, bd, state_scale,
+              reference_scale, phi_c, phi_a, xi_c, xi_a, mask, yf_c, yf_a, yd_c, yd_a, gate,
+              weight, h, f, d, phi, xi, y, u, x_new, fx_new)  # fmt: skip
+    if not any_settled:
+        return 0
+    iv_short_window(phi, xi, y, rows, left, right, h, mu_e, weight, short, res2, weight_e, steps,
+                    increments, phi_t, xi_t)  # fmt: skip
+    for n in range(n_vehicles):
+        due[n] = steps[n] % every == 1 or every == 1
+    return ANY_SETTLED | (ALL_SETTLED if all_settled else 0) | _flags(due, settled)
+
+
+_IV_STEP_LONG = (
+    # xi, y, the excitation measures (N, rows), the threshold, the rows active (N, rows),
+    # settled (N,), mu, h, the entries' rows, the increments, the long statistics, rhs (N, rows
+    # * W); work: excited (N, rows), forget (rows, N); the steps (N,), the solve's period in
+    # steps; the time since the model's update (N,) (in/out), its period less 1e-9; out: the
+    # vehicles due for the solve and for the model's update (N,)
+    f'int64({_F2}, {_F2}, {_F2}, float64, boolean[:, ::1], boolean[::1], float64, float64, {_I1},'
+    f' float64[:, :, ::1], float64[:, :, ::1], {_F2}, boolean[:, ::1], {_F2}, int64[::1], int64,'
+    f' {_F1}, float64, boolean[::1], boolean[::1])'
+)
+
+
+@_compiled(_IV_STEP_LONG)
+def iv_step_long(xi, y, excitation, threshold, active, settled, mu, h, entry_row, increments,
+                 long, rhs, excited, forget, steps, every, since, period, due, due_model):
+    """The second part of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`, after the
+    excitation measures: the rows excited (``excitation >= threshold``, active, settled),
+    :func:`iv_long_window`, the vehicles due for the solve (``due``), and the settled ones'
+    time since the model's update advanced by ``h``, those due for it (``due_model``) set back
+    to 0. Returns the solve's :data:`ANY_DUE` / :data:`ALL_DUE` flags and the model's
+    :data:`ANY_DUE_MODEL` / :data:`ALL_DUE_MODEL`."""
+    n_vehicles, n_rows = excited.shape
+    for n in range(n_vehicles):
+        for p in range(n_rows):
+            excited[n, p] = excitation[n, p] >= threshold and active[n, p] and settled[n]
+    iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs, forget)
+    for n in range(n_vehicles):
+        due[n] = steps[n] % every == 0 or every == 1
+    flags = _flags(due, settled)
+    any_, all_ = False, True
+    for n in range(n_vehicles):
+        if settled[n]:
+            since[n] += h
+        due_model[n] = since[n] >= period
+        if due_model[n]:
+            since[n] = 0.0
+        any_ |= due_model[n]
+        all_ &= due_model[n]
+    return flags | (ANY_DUE_MODEL if any_ else 0) | (ALL_DUE_MODEL if all_ else 0)
+
+
 # ------------------------------------------------------------------------------ odometry
 
 _RO = types.Array(types.float64, 1, 'A', readonly=True)

@@ -83,7 +83,7 @@ def test_the_identifiers_step_is_the_numpy_formulas_on_one_vehicle():
         ident.x_aux, ident._last_r, ident._aux_shift, ident._fx, ident._cf, ident._df, ident._cd,
         ident._dd, ident._ad_t, ident._bd, iv.STATE_SCALE, iv.REFERENCE_SCALE, *iv.PHI_GATHER,
         *iv.XI_GATHER, ident._mask_flat, iv.Y_F_GATHER_C, iv.Y_F_GATHER_A, iv.Y_D_GATHER_C,
-        iv.Y_D_GATHER_A, w.ones_rows, w.ones, 0.01, w.f, w.d, w.phi, w.xi, w.y, w.u, w.x, w.fx,
+        iv.Y_D_GATHER_A, w.gate, w.weight, 0.01, w.f, w.d, w.phi, w.xi, w.y, w.u, w.x, w.fx,
     )  # fmt: skip
     np.testing.assert_allclose(ident.x_aux[0], x_new, rtol=1e-14, atol=1e-14)
     np.testing.assert_allclose(w.f[0], f, rtol=1e-14, atol=1e-14)

@@ -23,11 +23,12 @@ solve and excitation measures, the predictions' fits), and the products over man
 OpenBLAS sums in its own blocked order. Equivalent small-matrix code is not enough there: the
 identifier's systems are ill-conditioned along the directions the flight does not excite, and
 a compiled LU and Jacobi eigensolver moved the golden outputs by up to 6e-9 (EVALUATION.md,
-section 4). The kernels that need them (the identifier's excitation measures,
-:mod:`~cloe_ros.core.kernels_identifier`; the predictions', :mod:`~cloe_ros.core.kernels_models`,
+section 4). The kernels that need them (the identifier's solve and excitation measures,
+:mod:`~cloe_ros.core.kernels_identifier`; the error statistics' third differences,
+:mod:`~cloe_ros.core.kernels_covariance`; the predictions', :mod:`~cloe_ros.core.kernels_models`,
 :mod:`~cloe_ros.core.kernels_ensemble`, :mod:`~cloe_ros.core.kernels_combine`) call the routines
 numpy calls instead, in numpy's own OpenBLAS (:mod:`~cloe_ros.core.blas`), which gives numpy's
-bits. The identifier's solve stays in numpy: its ``dgesv`` calls are most of its cost.
+bits.
 
 The kernels compile when this module is imported (explicit signatures) and are cached on disk
 beside it (``cache=True``), so no message ever waits on a compile: the first import on a

@@ -1,15 +1,18 @@
-"""Compiled kernel (numba) of the IV identifier's excitation and uncertainty measures (4 Hz).
+"""Compiled kernels (numba) of the IV identifier's periodic updates: its solve (20 Hz) and its
+excitation and uncertainty measures (4 Hz).
 
-:func:`iv_excitation` replaces, for the vehicles due, the numpy code of
+:func:`iv_solve` and :func:`iv_excitation` replace, for the vehicles due, the numpy code of
+:meth:`~cloe_ros.core.identifier.IvIdentifier._solve` and
 :meth:`~cloe_ros.core.identifier.IvIdentifier._update_excitation`: some dozens of calls on
-batches of 1x1 to 5x5 matrices. With 100 vehicles stepped together it took 1.5 µs of the
-estimator's 4.5 µs per vehicle-step, 1.2 µs compiled; LAPACK's own calls (two ``eigh``, one
-``svd`` and one ``inv`` per row) take about 1.1 µs of that (``scripts/engine_benchmark.py``
-prints them beside the estimator). The identifier's solve (20 Hz) stays in numpy: its 6x6
-``dgesv`` calls are most of its cost, and compiled it was no faster.
+batches of 1x1 to 6x6 matrices. With one vehicle their call overhead was most of the
+identifier's step; with 100 vehicles stepped together, LAPACK's own calls are most of their
+cost (two ``eigh``, one ``svd`` and one ``inv`` per row for the measures, a ``dgesv`` per row for
+the solve: about 1.6 µs per vehicle-step, which ``scripts/engine_benchmark.py`` prints beside
+the estimator).
 
-The kernel gives the numpy code's values bit for bit (under the golden test's pinned kernels;
-test/core/test_kernels_identifier.py checks it on a simulated swarm and on recorded flights),
+Each kernel gives the numpy code's values bit for bit (under the golden test's pinned kernels;
+test/core/test_kernels_identifier.py checks it on random statistics with their edge cases and on
+recorded flights),
 because it does the same floating-point operations in the same order:
 
 * the decompositions and solves are LAPACK's, called as numpy calls them
@@ -29,7 +32,7 @@ because it does the same floating-point operations in the same order:
   order and grouping (numba fuses no multiply-adds without ``fastmath``).
 
 numpy raises :class:`numpy.linalg.LinAlgError` for a whole batch when one of its matrices
-fails; the kernel then returns an error code and writes nothing, as the numpy code writes
+fails; the kernels then return an error code and write nothing, as the numpy code writes
 nothing (the covariance's ``inv`` is the exception in both: a singular matrix leaves that
 size's rows at an infinite uncertainty for every vehicle of the batch).
 

@@ -11,9 +11,8 @@ the solve: about 1.6 µs per vehicle-step, which ``scripts/engine_benchmark.py``
 the estimator).
 
 Each kernel gives the numpy code's values bit for bit (under the golden test's pinned kernels;
-test/core/test_kernels_identifier.py checks it on random statistics with their edge cases and on
-recorded flights),
-because it does the same floating-point operations in the same order:
+test/core/test_kernels_identifier.py checks it on random statistics with their edge cases and
+on recorded flights), because it does the same floating-point operations in the same order:
 
 * the decompositions and solves are LAPACK's, called as numpy calls them
   (:mod:`cloe_ros.core.blas`: ``dsyevd`` for ``eigh``, ``dgesdd`` for the singular values,

@@ -96,6 +96,14 @@ def run_golden_process(bag: Path | str, out: Path | str, kernels: dict[str, str]
                           env=env, cwd=REPO, **run_args)
 
 
+def run_pinned_script(code: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    """Run ``python -c code args...`` with :data:`PINNED_KERNELS` in its environment and this
+    checkout first on its path, from the checkout; its output captured as text."""
+    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
+    return subprocess.run([sys.executable, '-c', code, *args], env=env, cwd=REPO,
+                          capture_output=True, text=True, timeout=timeout)  # fmt: skip
+
+
 def check_pinned_kernels() -> None:
     """Raise unless this process runs the pinned kernels: OpenBLAS's Nehalem kernels in every
     OpenBLAS loaded, and no numpy loop dispatched above its baseline."""

@@ -211,24 +211,27 @@ if AVAILABLE:
                       b if i2 else np.ascontiguousarray(b), tmp)  # fmt: skip
         out[:, :] = tmp
 
+    @_compiled(f'void({_A2}, {_A2})')
+    def _transposed(a, out):
+        """``out[j, i] = a[i, j]`` for ``a`` (m, n): a matrix to or from LAPACK's column-major
+        order (``out`` may be larger than (n, m): the rest is left as it is)."""
+        for i in range(a.shape[0]):
+            for j in range(a.shape[1]):
+                out[j, i] = a[i, j]
+
     @_compiled(f'int64({_A2}, {_A2}, {_A2}, float64[:, ::1], float64[:, ::1], int64[::1])')
     def solve(a, b, out, work_a, work_b, pivots):
         """``out`` (n, k) = ``np.linalg.solve(a, b)`` for ``a`` (n, n), ``b`` (n, k): ``dgesv``
         on Fortran-ordered copies (``work_a`` (n, n), ``work_b`` (k, n), ``pivots`` (n,) int64).
         Returns LAPACK's ``info`` (> 0: ``a`` is singular, where numpy raises)."""
         n, k = b.shape
-        for i in range(n):
-            for j in range(n):
-                work_a[j, i] = a[i, j]
-            for j in range(k):
-                work_b[j, i] = b[i, j]
+        _transposed(a, work_a)
+        _transposed(b, work_b)
         sizes = np.empty(3, np.int64)  # n, k, info
         sizes[0], sizes[1], sizes[2] = n, k, 0
         _dgesv(sizes[0:].ctypes, sizes[1:].ctypes, work_a.ctypes, sizes[0:].ctypes,
                pivots.ctypes, work_b.ctypes, sizes[0:].ctypes, sizes[2:].ctypes)
-        for i in range(n):
-            for j in range(k):
-                out[i, j] = work_b[j, i]
+        _transposed(work_b, out)
         return sizes[2]
 
     @_compiled(f'int64({_A2}, {_A2}, {_A2})')
@@ -241,11 +244,8 @@ if AVAILABLE:
         ldb = max(1, m, n)
         fa = np.empty((n, max(1, m)))
         fb = np.zeros((k, ldb))
-        for i in range(m):
-            for j in range(n):
-                fa[j, i] = a[i, j]
-            for j in range(k):
-                fb[j, i] = b[i, j]
+        _transposed(a, fa)
+        _transposed(b, fb)
         s = np.empty(max(1, min(m, n)))
         ints = np.empty(8, np.int64)
         ints[0], ints[1], ints[2], ints[3], ints[4] = m, n, k, max(1, m), ldb
@@ -263,30 +263,16 @@ if AVAILABLE:
         _dgelsd(ints[0:].ctypes, ints[1:].ctypes, ints[2:].ctypes, fa.ctypes, ints[3:].ctypes,
                 fb.ctypes, ints[4:].ctypes, s.ctypes, rcond.ctypes, ints[5:].ctypes, work.ctypes,
                 ints[6:].ctypes, iwork.ctypes, ints[7:].ctypes)
-        for i in range(n):
-            for j in range(k):
-                out[i, j] = fb[j, i]
+        _transposed(fb[:, :n], out)
         return ints[7]
 
     @_compiled(f'int64({_A2}, {_A2}, int64[::1])')
     def inv(a, out, pivots):
-        """``out`` (n, n) = ``np.linalg.inv(a)``: ``dgesv`` of a Fortran-ordered copy of ``a``
-        on the identity (``pivots`` (n,) int64). Returns LAPACK's ``info`` (> 0: ``a`` is
-        singular, where numpy raises)."""
+        """``out`` (n, n) = ``np.linalg.inv(a)``: :func:`solve` of ``a`` on the identity, as
+        numpy's ``inv`` calls ``dgesv`` (``pivots`` (n,) int64). Returns LAPACK's ``info`` (> 0:
+        ``a`` is singular, where numpy raises)."""
         n = a.shape[0]
-        fa, fb = np.empty((n, n)), np.zeros((n, n))
-        for i in range(n):
-            fb[i, i] = 1.0
-            for j in range(n):
-                fa[j, i] = a[i, j]
-        sizes = np.empty(3, np.int64)  # n, n, info
-        sizes[0], sizes[1], sizes[2] = n, n, 0
-        _dgesv(sizes[0:].ctypes, sizes[1:].ctypes, fa.ctypes, sizes[0:].ctypes, pivots.ctypes,
-               fb.ctypes, sizes[0:].ctypes, sizes[2:].ctypes)
-        for i in range(n):
-            for j in range(n):
-                out[i, j] = fb[j, i]
-        return sizes[2]
+        return solve(a, np.eye(n), out, np.empty((n, n)), np.empty((n, n)), pivots)
 
     _JOBZ_V, _JOBZ_N, _UPLO_L = ord('V'), ord('N'), ord('L')
 
@@ -314,9 +300,7 @@ if AVAILABLE:
         (> 0: no convergence, where numpy raises)."""
         n = a.shape[0]
         fa = np.empty((n, n))
-        for i in range(n):
-            for j in range(n):
-                fa[j, i] = a[i, j]
+        _transposed(a, fa)
         chars = np.array([_JOBZ_V, _UPLO_L], np.uint8)
         ints = np.empty(5, np.int64)
         ints[0], ints[1], ints[2], ints[3], ints[4] = n, max(n, 1), sizes[0], sizes[1], 0
@@ -325,10 +309,8 @@ if AVAILABLE:
                 vals.ctypes, work.ctypes, ints[2:].ctypes, iwork.ctypes, ints[3:].ctypes,
                 ints[4:].ctypes, 1, 1)  # fmt: skip
         if ints[4] == 0:
-            for i in range(n):
-                w[i] = vals[i]
-                for j in range(n):
-                    v[i, j] = fa[j, i]
+            w[:] = vals
+            _transposed(fa, v)
         return ints[4]
 
     @_compiled('int64(int64)')
@@ -354,9 +336,7 @@ if AVAILABLE:
         numpy raises)."""
         n = a.shape[0]
         fa = np.empty((n, n))
-        for i in range(n):
-            for j in range(n):
-                fa[j, i] = a[i, j]
+        _transposed(a, fa)
         chars = np.array([_JOBZ_N], np.uint8)
         ints = np.empty(7, np.int64)  # m, n, lda, ldu, ldvt, lwork, info
         ints[0], ints[1], ints[2], ints[3], ints[4] = n, n, max(n, 1), max(n, 1), 1
@@ -366,6 +346,5 @@ if AVAILABLE:
                 vals.ctypes, u.ctypes, ints[3:].ctypes, vt.ctypes, ints[4:].ctypes, work.ctypes,
                 ints[5:].ctypes, iwork.ctypes, ints[6:].ctypes, 1)  # fmt: skip
         if ints[6] == 0:
-            for i in range(n):
-                s[i] = vals[i]
+            s[:] = vals
         return ints[6]

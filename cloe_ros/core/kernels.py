@@ -89,6 +89,13 @@ _F2 = 'float64[:, ::1]'
 _I1 = 'intp[::1]'
 
 
+@_compiled('float64(float64, float64)')
+def maximum(a, b):
+    """``np.maximum(a, b)`` of two floats: ``a`` where it is NaN or not below ``b``, else ``b``
+    (so a NaN on either side is kept)."""
+    return a if (a >= b or a != a) else b
+
+
 @_compiled(f'float64({_F1}, {_F1})')
 def einsum_dot(a, b):
     """``np.einsum('j,j->', a, b)`` as numpy's x86-64 baseline (two-lane) loop adds it: two

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from cloe_ros.core import blas, kernels
+from cloe_ros.core.kernels import maximum
 
 #: Whether the kernel is defined (numpy's OpenBLAS found: :data:`cloe_ros.core.blas.AVAILABLE`).
 AVAILABLE = blas.AVAILABLE
@@ -27,11 +28,6 @@ _compiled = kernels.Compiler(__name__, 'cloe_ros.core.kernels_covariance')
 
 if AVAILABLE:
     _F2 = 'float64[:, :]'
-
-    @_compiled('float64(float64, float64)')
-    def _maximum(a, b):
-        """``np.maximum(a, b)``: ``a`` where it is NaN or not below ``b``, else ``b``."""
-        return a if (a >= b or a != a) else b
 
     @_compiled('float64(float64, float64)')
     def _weight(count, alpha):
@@ -84,7 +80,7 @@ if AVAILABLE:
                 dz = diffs.copy()
                 blas.matmul(d3, held[1], diffs)
                 for i in range(n):
-                    rho = 1.0 / (1.0 + step * _maximum(gain_l[v, i], 0.0))
+                    rho = 1.0 / (1.0 + step * maximum(gain_l[v, i], 0.0))
                     f = 20.0 + rho * (-15.0 + rho * (6.0 - rho))
                     st[noise + i] = st[noise + i] + wd * (dz[0, i] * dz[0, i] / d3_noise
                                                           - st[noise + i])  # fmt: skip
@@ -97,6 +93,6 @@ if AVAILABLE:
                     p = st[sm + i] - r + 2.0 * c
                     schwarz = c * c / r if r > 0.0 else 0.0
                     linear = (1.0 - rho) / (1.0 + rho) * r
-                    p = _maximum(_maximum(_maximum(p, schwarz), linear), floor)
+                    p = maximum(maximum(maximum(p, schwarz), linear), floor)
                     st[var + i] = p if (p <= ceiling or p != p) else ceiling
             counts[v, 0], counts[v, 1], counts[v, 2] = count, count_d3, filled

@@ -27,8 +27,8 @@ on recorded flights), because it does the same floating-point operations in the 
 * a trace, and the sums of squares of ``np.linalg.norm``, add from the first term on, left to
   right (numpy's reduction of under 8 terms);
 * ``np.maximum`` keeps its first argument where it is NaN or not below the second
-  (:func:`_maximum`), and the rest is element-wise IEEE arithmetic in the numpy expressions'
-  order and grouping (numba fuses no multiply-adds without ``fastmath``).
+  (:func:`~cloe_ros.core.kernels.maximum`), and the rest is element-wise IEEE arithmetic in the
+  numpy expressions' order and grouping (numba fuses no multiply-adds without ``fastmath``).
 
 numpy raises :class:`numpy.linalg.LinAlgError` for a whole batch when one of its matrices
 fails; the kernels then return an error code and write nothing, as the numpy code writes
@@ -44,6 +44,7 @@ from __future__ import annotations
 import numpy as np
 
 from cloe_ros.core import blas, kernels
+from cloe_ros.core.kernels import maximum
 
 #: Whether the kernels are defined (numpy's OpenBLAS found: :data:`cloe_ros.core.blas.AVAILABLE`).
 AVAILABLE = blas.AVAILABLE
@@ -52,12 +53,6 @@ AVAILABLE = blas.AVAILABLE
 OK, EIGH_FAILED, SVD_FAILED, SOLVE_FAILED = 0, 1, 2, 3
 
 _compiled = kernels.Compiler(__name__, 'cloe_ros.core.kernels_identifier')
-
-
-@_compiled('float64(float64, float64)')
-def _maximum(a, b):
-    """``np.maximum(a, b)``: ``a`` where it is NaN or not below ``b``, else ``b``."""
-    return a if (a >= b or a != a) else b
 
 
 @_compiled('float64(float64)')
@@ -107,8 +102,8 @@ if AVAILABLE:
             return info
         top = w[0]
         for i in range(1, n):
-            top = _maximum(top, w[i])
-        scale = _maximum(top, 1e-300)
+            top = maximum(top, w[i])
+        scale = maximum(top, 1e-300)
         for i in range(n):
             w[i] = 1.0 / np.sqrt(w[i] if w[i] > 1e-12 * scale else np.inf)
         for i in range(n):
@@ -164,7 +159,7 @@ if AVAILABLE:
             singular = False
             for a in range(n_sel):
                 v = sel[a]
-                weight = _maximum(weight_e[v], 1e-12)
+                weight = maximum(weight_e[v], 1e-12)
                 for p in range(n_rows):
                     if row_size[p] != size:
                         continue
@@ -215,7 +210,7 @@ if AVAILABLE:
                     total = rows[v, p, 0] * rows[v, p, 0]
                     for i in range(1, size):
                         total += rows[v, p, i] * rows[v, p, i]
-                    unc[a, p] = np.sqrt(_maximum(var, 0.0)) / _maximum(np.sqrt(total), 1e-12)
+                    unc[a, p] = np.sqrt(maximum(var, 0.0)) / maximum(np.sqrt(total), 1e-12)
             if singular:  # numpy's inv raised for the batch: that size stays infinite
                 for a in range(n_sel):
                     for p in range(n_rows):
@@ -237,8 +232,8 @@ if AVAILABLE:
                     d = rows[v, p, i] - rows_slow[v, p, i]
                     moved += d * d
                     size += rows[v, p, i] * rows[v, p, i]
-                drift = np.sqrt(moved) / _maximum(np.sqrt(size), 1e-12)
-                total = _maximum(u, drift)
+                drift = np.sqrt(moved) / maximum(np.sqrt(size), 1e-12)
+                total = maximum(u, drift)
                 code = 1  # converging
                 if total <= identified:
                     code = 2

@@ -4,14 +4,10 @@ kernels, publishes the same bits (states, parameters, predictions, radii)."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import pytest
 
 from cloe_ros.core import anticipation
-from test.golden_outputs import PINNED_KERNELS, REPO
+from test.golden_outputs import REPO, run_pinned_script
 
 BOTH_WAYS = r'''
 import sys
@@ -37,7 +33,5 @@ print('ok')
 @pytest.mark.skipif(not anticipation.COMPILED, reason="numpy's OpenBLAS not found")
 @pytest.mark.parametrize('bag', ['position', 'trajectory'])
 def test_the_compiled_predictions_are_the_numpy_codes_bit_for_bit(bag):
-    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
-    done = subprocess.run([sys.executable, '-c', BOTH_WAYS, str(REPO / 'bags' / bag)], env=env,
-                          cwd=REPO, capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = run_pinned_script(BOTH_WAYS, str(REPO / 'bags' / bag))
     assert done.returncode == 0 and done.stdout.strip() == 'ok', done.stderr[-3000:]

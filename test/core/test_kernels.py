@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from cloe_ros.core import kernels
-from test.golden_outputs import PINNED_KERNELS, REPO
+from test.golden_outputs import REPO, run_pinned_script
 
 CHECK = r'''
 import numpy as np
@@ -53,9 +53,7 @@ print('ok')
 
 def test_the_kernels_sums_are_numpys_bit_for_bit_under_the_pin():
     """einsum's sum of products, and the intent's harmonic basis and fit residuals."""
-    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
-    done = subprocess.run([sys.executable, '-c', CHECK], env=env, cwd=REPO, capture_output=True,
-                          text=True, timeout=300)  # fmt: skip
+    done = run_pinned_script(CHECK, timeout=300)
     assert done.returncode == 0 and done.stdout.strip() == 'ok', done.stderr[-2000:]
 
 

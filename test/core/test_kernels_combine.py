@@ -12,9 +12,6 @@ numpy's loops, OpenBLAS and libm are those the golden outputs were computed with
 from __future__ import annotations
 
 import contextlib
-import os
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 
@@ -24,7 +21,7 @@ import pytest
 from cloe_ros.core import anticipation as ant
 from cloe_ros.core import kernels_combine as kc
 from test.corpus import B3
-from test.golden_outputs import PINNED_KERNELS, REPO
+from test.golden_outputs import REPO, run_pinned_script
 
 needs_blas = pytest.mark.skipif(not kc.AVAILABLE, reason="numpy's OpenBLAS not found")
 
@@ -483,9 +480,7 @@ print('ok')
 
 
 def pinned(what: str) -> None:
-    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
-    done = subprocess.run([sys.executable, '-c', CHILD, what], env=env, cwd=REPO,
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = run_pinned_script(CHILD, what)
     assert done.returncode == 0 and done.stdout.strip() == 'ok', done.stderr[-3000:]
 
 

@@ -8,9 +8,6 @@ cos and sin, they agree to round-off."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -20,7 +17,7 @@ import pytest
 from cloe_ros.core import anticipation as an
 from cloe_ros.core import kernels_ensemble as ke
 from test.corpus import FLIGHTS
-from test.golden_outputs import PINNED_KERNELS, REPO
+from test.golden_outputs import REPO, run_pinned_script
 
 pytestmark = pytest.mark.skipif(not ke.AVAILABLE, reason="numpy's OpenBLAS not found")
 
@@ -409,9 +406,7 @@ print('ok')
 def test_the_kernels_are_the_numpy_code_bit_for_bit_under_the_pin():
     """Random inputs and every call of a recorded flight (bags/position, a corpus flight), in a
     child process with the golden test's pinned kernels."""
-    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
-    done = subprocess.run([sys.executable, '-c', PINNED_CHECK], env=env, cwd=REPO,
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = run_pinned_script(PINNED_CHECK)
     assert done.returncode == 0 and done.stdout.strip().endswith('ok'), done.stderr[-3000:]
 
 

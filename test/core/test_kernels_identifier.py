@@ -7,9 +7,6 @@ flights replayed through the engine under the golden test's pinned kernels."""
 from __future__ import annotations
 
 import copy
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -27,7 +24,7 @@ from cloe_ros.core.identifier import (
     IdentifierConfig,
     IvIdentifier,
 )
-from test.golden_outputs import PINNED_KERNELS, REPO
+from test.golden_outputs import REPO, run_pinned_script
 
 pytestmark = pytest.mark.skipif(not kernels_identifier.AVAILABLE,
                                 reason="numpy's OpenBLAS not found")  # fmt: skip
@@ -169,7 +166,5 @@ print('ok')
 
 @pytest.mark.parametrize('bag', ['position', 'trajectory'])
 def test_the_excitation_kernel_is_numpys_on_recorded_flights(bag):
-    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
-    done = subprocess.run([sys.executable, '-c', BOTH_WAYS, str(REPO / 'bags' / bag)], env=env,
-                          cwd=REPO, capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = run_pinned_script(BOTH_WAYS, str(REPO / 'bags' / bag))
     assert done.returncode == 0 and done.stdout.strip() == 'ok', done.stderr[-3000:]

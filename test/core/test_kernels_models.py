@@ -6,15 +6,12 @@ arguments the numpy code receives while the engine runs recorded flights."""
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 from cloe_ros.core import kernels_models as km
-from test.golden_outputs import PINNED_KERNELS, REPO
+from test.golden_outputs import REPO, run_pinned_script
 
 pytestmark = pytest.mark.skipif(not km.AVAILABLE, reason="numpy's OpenBLAS not found")
 
@@ -248,9 +245,7 @@ print('ok')
 
 
 def run_pinned(code: str, *args: str) -> None:
-    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
-    done = subprocess.run([sys.executable, '-c', code, *args], env=env, cwd=REPO,
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    done = run_pinned_script(code, *args)
     assert done.returncode == 0 and done.stdout.strip() == 'ok', done.stderr[-3000:]
 
 

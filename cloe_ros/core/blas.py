@@ -97,13 +97,13 @@ if AVAILABLE:
     _compiled = Compiler(__name__, 'cloe_ros.core.blas')
     _A1, _A2 = 'float64[:]', 'float64[:, :]'  # (any strides: one signature serves every view)
 
-    @_compiled('boolean(intp, intp, intp, intp)')
+    @_compiled.helper
     def _blasable(s1, s2, d1, d2):
         """numpy's ``is_blasable2d`` with element strides: unit inner stride, an outer one
         at least the inner extent (and a BLAS int)."""
         return s2 == 1 and s1 >= d2 and s1 <= 2**31 - 1
 
-    @_compiled(f'void({_A2}, {_A2}, {_A2})')
+    @_compiled.helper
     def _gemm_or_syrk(a, b, out):
         """numpy's matrix-matrix product of BLAS-able operands into a C-ordered ``out``:
         ``syrk`` for a matrix times its own transpose (the other triangle copied), else
@@ -132,7 +132,7 @@ if AVAILABLE:
             _dgemm(ROW_MAJOR, trans1, trans2, m, p, n, 1.0, a.ctypes, lda, b.ctypes, ldb, 0.0,
                    out.ctypes, ldc)
 
-    @_compiled(f'void({_A2}, {_A1}, {_A1}, intp, intp)')
+    @_compiled.helper
     def _gemv(a, x, y, s_m, s_n):
         """``y = a @ x`` for ``a`` (m, n) blasable with element strides ``(s_m, s_n)``:
         numpy's ``gemv`` (column-major with the transpose, or row-major)."""
@@ -144,7 +144,7 @@ if AVAILABLE:
         _dgemv(order, TRANS, n, m, 1.0, a.ctypes, lda, x.ctypes, x.strides[0] // 8, 0.0, y.ctypes,
                y.strides[0] // 8)
 
-    @_compiled(f'void({_A1}, {_A1}, {_A2})')
+    @_compiled.helper
     def _dot(x, y, out):
         """``out[0, 0]`` = numpy's ``dot`` of two vectors: ``cblas_ddot`` where the strides
         allow it, else a plain sum in order."""
@@ -158,7 +158,7 @@ if AVAILABLE:
                 s += x[i] * y[i]
             out[0, 0] = s
 
-    @_compiled(f'void({_A2}, {_A2}, {_A2})')
+    @_compiled.helper
     def _noblas(a, b, out):
         """numpy's matmul loop without BLAS: each entry summed from 0 in order."""
         m, n = a.shape
@@ -170,7 +170,7 @@ if AVAILABLE:
                     s += a[i, k] * b[k, j]
                 out[i, j] = s
 
-    @_compiled(f'void({_A2}, {_A2}, {_A2})')
+    @_compiled.helper
     def matmul(a, b, out):
         """``out[...] = a @ b`` for 2-D float64 ``a`` (m, n), ``b`` (n, p), ``out`` (m, p) (any
         strides; ``out`` may not overlap them): numpy's matmul, the same routine and
@@ -211,7 +211,7 @@ if AVAILABLE:
                       b if i2 else np.ascontiguousarray(b), tmp)  # fmt: skip
         out[:, :] = tmp
 
-    @_compiled(f'void({_A2}, {_A2})')
+    @_compiled.helper
     def _transposed(a, out):
         """``out[j, i] = a[i, j]`` for ``a`` (m, n): a matrix to or from LAPACK's column-major
         order (``out`` may be larger than (n, m): the rest is left as it is)."""
@@ -219,7 +219,7 @@ if AVAILABLE:
             for j in range(a.shape[1]):
                 out[j, i] = a[i, j]
 
-    @_compiled(f'int64({_A2}, {_A2}, {_A2}, float64[:, ::1], float64[:, ::1], int64[::1])')
+    @_compiled.helper
     def solve(a, b, out, work_a, work_b, pivots):
         """``out`` (n, k) = ``np.linalg.solve(a, b)`` for ``a`` (n, n), ``b`` (n, k): ``dgesv``
         on Fortran-ordered copies (``work_a`` (n, n), ``work_b`` (k, n), ``pivots`` (n,) int64).
@@ -234,7 +234,7 @@ if AVAILABLE:
         _transposed(work_b, out)
         return sizes[2]
 
-    @_compiled(f'int64({_A2}, {_A2}, {_A2})')
+    @_compiled.helper
     def lstsq(a, b, out):
         """``out`` (n, k) = ``np.linalg.lstsq(a, b, rcond=None)[0]`` for ``a`` (m, n), ``b``
         (m, k): ``dgelsd`` as numpy calls it (its workspace query, ``rcond`` = eps max(m, n)).
@@ -266,7 +266,7 @@ if AVAILABLE:
         _transposed(fb[:, :n], out)
         return ints[7]
 
-    @_compiled(f'int64({_A2}, {_A2}, int64[::1])')
+    @_compiled.helper
     def inv(a, out, pivots):
         """``out`` (n, n) = ``np.linalg.inv(a)``: :func:`solve` of ``a`` on the identity, as
         numpy's ``inv`` calls ``dgesv`` (``pivots`` (n,) int64). Returns LAPACK's ``info`` (> 0:
@@ -276,7 +276,7 @@ if AVAILABLE:
 
     _JOBZ_V, _JOBZ_N, _UPLO_L = ord('V'), ord('N'), ord('L')
 
-    @_compiled('int64[::1](int64)')
+    @_compiled.helper
     def eigh_workspace(n):
         """numpy's workspace of ``dsyevd`` for ``eigh`` of (n, n) matrices: ``[lwork, liwork]``
         from LAPACK's query."""
@@ -292,7 +292,7 @@ if AVAILABLE:
         out[0], out[1] = int(query[0]), iquery[0]
         return out
 
-    @_compiled(f'int64({_A2}, {_A1}, {_A2}, int64[::1], float64[::1], int64[::1])')
+    @_compiled.helper
     def eigh(a, w, v, sizes, work, iwork):
         """``w`` (n,), ``v`` (n, n) = ``np.linalg.eigh(a)``: ``dsyevd`` ('V', lower triangle)
         on a Fortran-ordered copy of ``a``, with the workspace ``work`` and ``iwork`` of
@@ -313,7 +313,7 @@ if AVAILABLE:
             _transposed(fa, v)
         return ints[4]
 
-    @_compiled('int64(int64)')
+    @_compiled.helper
     def svd_workspace(n):
         """numpy's ``lwork`` of ``dgesdd`` for the singular values of (n, n) matrices, from
         LAPACK's query (at least 1)."""
@@ -328,7 +328,7 @@ if AVAILABLE:
                 ints[5:].ctypes, iwork.ctypes, info.ctypes, 1)  # fmt: skip
         return max(1, int(query[0]))
 
-    @_compiled(f'int64({_A2}, {_A1}, float64[::1], int64[::1])')
+    @_compiled.helper
     def svd_values(a, s, work, iwork):
         """``s`` (n,) = ``np.linalg.svd(a, compute_uv=False)`` of a square ``a``: ``dgesdd``
         ('N') on a Fortran-ordered copy, with the workspace ``work`` (:func:`svd_workspace`

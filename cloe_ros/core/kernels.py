@@ -30,13 +30,17 @@ section 4). The kernels that need them (the identifier's solve and excitation me
 numpy calls instead, in numpy's own OpenBLAS (:mod:`~cloe_ros.core.blas`), which gives numpy's
 bits.
 
-The kernels compile when this module is imported (explicit signatures) and are cached on disk
-beside it (``cache=True``), so no message ever waits on a compile: the first import on a
-machine takes a few seconds, later ones load the machine code.
+The kernels Python calls compile when their module is imported (explicit signatures) and are
+cached on disk beside it (``cache=True``), so no message ever waits on a compile: the first
+import on a machine takes a few seconds, later ones load the machine code. The helpers, which
+only other kernels call (:meth:`Compiler.helper`), are compiled into their callers and never
+loaded by themselves: an import loads 25 kernels instead of 64, about 0.2 s less per process
+(EVALUATION.md, section 4).
 """
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import numpy as np
@@ -45,7 +49,8 @@ from numba.core.errors import NumbaError
 
 
 class Compiler:
-    """The decorator of a module's kernels: ``numba.njit(signature)``, without the GIL, with
+    """The decorator of a module's kernels: ``numba.njit(signature)`` (or, for a helper,
+    ``numba.njit`` alone: :meth:`helper`), without the GIL, with
     numpy's errors (``x / 0`` gives inf or nan, not an exception) and with numba's cache where
     it can have one.
 
@@ -62,23 +67,33 @@ class Compiler:
         self.cached = module == own
 
     def __call__(self, signature):
+        """A kernel Python calls: compiled for ``signature`` when it is decorated."""
+        return functools.partial(self._jit, signature)
+
+    def helper(self, func):
+        """A kernel only other kernels call: compiled, for the types they pass, into each
+        kernel that calls it when that kernel compiles. A kernel loaded from the cache holds
+        its helpers' machine code, so a helper is never loaded by itself, and importing the
+        modules loads only what Python calls (numba's load of a cached kernel costs about as
+        much as its code is long). Python may call a helper (the tests do): numba then
+        compiles it for those types, or loads them from its cache."""
+        return self._jit(None, func)
+
+    def _jit(self, signature, func):
         options = dict(nogil=True, error_model='numpy')
-
-        def decorate(func):
-            if self.cached:
-                try:
-                    return njit(signature, cache=True, **options)(func)
-                except NumbaError:  # the kernel itself does not compile: not the cache's
-                    raise
-                except Exception as err:  # whatever else the cache's problem, do without it
-                    self.cached = False
-                    warnings.warn(
-                        f'cloe_ros: numba cannot cache the compiled kernels ({err}); each '
-                        'process compiles them when it starts. Set NUMBA_CACHE_DIR to a '
-                        'writable folder to keep them.', RuntimeWarning, stacklevel=2)  # fmt: skip
-            return njit(signature, cache=False, **options)(func)
-
-        return decorate
+        signature = () if signature is None else (signature,)
+        if self.cached:
+            try:
+                return njit(*signature, cache=True, **options)(func)
+            except NumbaError:  # the kernel itself does not compile: not the cache's
+                raise
+            except Exception as err:  # whatever else the cache's problem, do without it
+                self.cached = False
+                warnings.warn(
+                    f'cloe_ros: numba cannot cache the compiled kernels ({err}); each '
+                    'process compiles them when it starts. Set NUMBA_CACHE_DIR to a '
+                    'writable folder to keep them.', RuntimeWarning, stacklevel=3)  # fmt: skip
+        return njit(*signature, cache=False, **options)(func)
 
 
 _compiled = Compiler(__name__, 'cloe_ros.core.kernels')
@@ -89,14 +104,14 @@ _F2 = 'float64[:, ::1]'
 _I1 = 'intp[::1]'
 
 
-@_compiled('float64(float64, float64)')
+@_compiled.helper
 def maximum(a, b):
     """``np.maximum(a, b)`` of two floats: ``a`` where it is NaN or not below ``b``, else ``b``
     (so a NaN on either side is kept)."""
     return a if (a >= b or a != a) else b
 
 
-@_compiled(f'float64({_F1}, {_F1})')
+@_compiled.helper
 def einsum_dot(a, b):
     """``np.einsum('j,j->', a, b)`` as numpy's x86-64 baseline (two-lane) loop adds it: two
     lanes, the even and the odd terms; blocks of eight terms taken from their last pair; then
@@ -116,7 +131,7 @@ def einsum_dot(a, b):
     return even + odd
 
 
-@_compiled(f'intp({_F1}, float64)')
+@_compiled.helper
 def _count_not_after(t, x):
     """How many of the increasing ``t`` are <= ``x``: ``np.searchsorted(t, x, 'right')``."""
     low, high = 0, t.shape[0]
@@ -129,7 +144,7 @@ def _count_not_after(t, x):
     return low
 
 
-@_compiled(f'void({_F1}, float64[:, :], float64, {_I1}, float64[::1])')
+@_compiled.helper
 def _interp_into(t, data, x, channels, out):
     """``data`` (T, C) sampled at ``t`` (T,), at ``x`` (in the span), for ``channels``, into
     ``out``: the arithmetic of ``np.interp`` (a sample's own time, and the ends, give the
@@ -231,7 +246,7 @@ _IV_FILTER = (
 )
 
 
-@_compiled(_IV_FILTER)
+@_compiled.helper
 def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, hist_count,
               aux_ad, aux_bd, x_aux, last_r, aux_shift, fx, cf, df, cd, dd, ad_t, bd,
               state_scale, reference_scale, phi_c, phi_a, xi_c, xi_a, mask, yf_c, yf_a, yd_c,
@@ -295,7 +310,7 @@ def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, his
                        + d[n, yd_c[p]] * yd_a[p]) * gate[n, p] * weight[n]  # fmt: skip
 
 
-@_compiled(f'void({_F2}, {_F2})')
+@_compiled.helper
 def _transpose(a, out):
     """``out`` (M, N) = ``a`` (N, M) transposed."""
     for n in range(a.shape[0]):
@@ -313,7 +328,7 @@ _IV_SHORT = (
 )
 
 
-@_compiled(_IV_SHORT)
+@_compiled.helper
 def iv_short_window(phi, xi, y, rows, left, right, h, mu_e, weight, short, res2, weight_e,
                     steps, increments, phi_t, xi_t):  # fmt: skip
     """The short-window statistics of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`,
@@ -354,7 +369,7 @@ _IV_LONG = (
 )
 
 
-@_compiled(_IV_LONG)
+@_compiled.helper
 def iv_long_window(xi, y, excited, mu, h, entry_row, increments, long, rhs, forget):
     """The long-window normal equations of :meth:`~cloe_ros.core.identifier.IvIdentifier.step`
     in its order: forgotten by ``mu`` only where the row is excited, ``xi phi^T h`` and ``xi
@@ -384,7 +399,7 @@ ANY_SETTLED, ALL_SETTLED, ANY_DUE, ALL_DUE = 1, 2, 4, 8
 ANY_DUE_MODEL, ALL_DUE_MODEL = 16, 32
 
 
-@_compiled('int64(boolean[::1], boolean[::1])')
+@_compiled.helper
 def _flags(mask, settled):
     """``ANY_DUE | ALL_DUE`` of ``mask`` (N,) restricted to the vehicles ``settled``."""
     any_, all_ = False, True

@@ -64,7 +64,7 @@ SCALE_GROWTH = 0.05
 # ------------------------------------------------------------------------------ sums
 
 
-@_compiled(f'float64({_A2}, intp, intp, intp)')
+@_compiled(f'float64({_A2}, intp, intp, intp)')  # (recursive: typed ahead)
 def pairwise_column(x, column, start, n):
     """numpy's pairwise sum (``pairwise_sum_DOUBLE``) of ``x[start:start + n, column]``: from
     0 in order below 8 terms; up to 128, eight accumulators seeded with the first eight terms,
@@ -107,7 +107,7 @@ def pairwise_column(x, column, start, n):
 # ---------------------------------------------------------------------------- radius
 
 
-@_compiled('float64(float64[:], intp, float64[::1])')
+@_compiled.helper
 def order_statistic(row, rank, work):
     """``np.sort(row)[rank]`` (NaN sorted last), without sorting: the finite and infinite
     entries are gathered into ``work`` (at least ``len(row)`` long) and the one of that rank
@@ -162,7 +162,7 @@ def order_statistic(row, rank, work):
     return work[rank]
 
 
-@_compiled(f'float64({_F1}, {_F1}, float64)')
+@_compiled.helper
 def interp_one(xp, fp, x):
     """``np.interp(x, xp, fp)`` of one ``x`` (the default ``left`` and ``right``): numpy's
     search (the last ``xp`` at or below ``x``; ``xp`` increasing) and arithmetic, with its
@@ -234,7 +234,7 @@ def coverage_radii(errors, count, level, prior, offsets, min_errors, scales, out
         out[k] = running
 
 
-@_compiled(f'void({_N1}, {_A1}, {_A1}, {_A1}, {_F2}, {_I1}, {_F1}, float64, float64)')
+@_compiled.helper
 def coverage_update(ks, errors, radii_then, scales, scores, count, level, gain, coverage):
     """:meth:`~cloe_ros.core.anticipation.CoverageRadius.update` ``(ks, errors, radii_then,
     scales)`` of a radius whose scores are ``scores`` (K, W) (its ``_errors``), ``count`` (K,)
@@ -310,7 +310,7 @@ def coverage_scored(slots, horizons, squared, radii, scales, scores, count, leve
 
 if blas.AVAILABLE:
 
-    @_compiled(f'float64({_A1})')
+    @_compiled.helper
     def dot_self(x):
         """``x @ x`` of a 1-D ``x`` (numpy's ``ddot`` on a contiguous copy, as ``np.linalg.norm``
         takes it), through :func:`cloe_ros.core.blas.matmul`."""

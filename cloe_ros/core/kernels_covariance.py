@@ -29,7 +29,7 @@ _compiled = kernels.Compiler(__name__, 'cloe_ros.core.kernels_covariance')
 if AVAILABLE:
     _F2 = 'float64[:, :]'
 
-    @_compiled('float64(float64, float64)')
+    @_compiled.helper
     def _weight(count, alpha):
         """``max(1.0 / count, alpha)``: the weight of a new sample in a running mean."""
         w = 1.0 / count

@@ -73,7 +73,7 @@ _F1, _F2, _F3 = 'float64[::1]', 'float64[:, ::1]', 'float64[:, :, ::1]'
 # ----------------------------------------------------------------------------- helpers
 
 
-@_compiled('intp(float64[:])')
+@_compiled.helper
 def argmin(a):
     """``np.argmin(a)`` of a non-empty 1-D ``a`` (any stride): the first minimum, or the first
     NaN if there is one."""
@@ -91,7 +91,7 @@ def argmin(a):
     return best
 
 
-@_compiled(f'float64({_F1})')
+@_compiled.helper
 def median(x):
     """:func:`~cloe_ros.core.anticipation.median` (``np.median``) of a 1-D ``x``: NaN if any
     entry is (or ``x`` is empty), else the middle entry of the sorted values, or the two middle
@@ -113,7 +113,7 @@ def median(x):
     return (below + p[k]) / 2.0
 
 
-@_compiled('intp(float64[:, :], float64, float64)')
+@_compiled.helper
 def last_jump(r, factor, floor):
     """:func:`~cloe_ros.core.anticipation.last_jump` of the positions ``r`` (T, C), C < 8: the
     index just after the last step ``|r[i + 1] - r[i]|`` above ``max(floor, factor *
@@ -142,7 +142,7 @@ def last_jump(r, factor, floor):
 # ----------------------------------------------------------------------------- ensemble
 
 
-@_compiled(f'void({_F3}, boolean[::1], {_F1}, {_F1}, intp, {_F3})')
+@_compiled.helper
 def expected_cross(cross, scored, offsets, min_growth, m, out):
     """``out`` (K, m, m) = :meth:`~cloe_ros.core.anticipation.Ensemble.expected_cross`
     ``[:, :m, :m]`` of an ensemble's error cross-products ``cross`` (K, M, M), m <= M, its
@@ -205,8 +205,7 @@ def expected_cross(cross, scored, offsets, min_growth, m, out):
 
 if blas.AVAILABLE:
 
-    @_compiled(f'intp({_F2}, boolean[::1], float64, {_F1}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2},'
-               f' {_F2}, int64[::1], boolean[::1], {_F1})')  # fmt: skip
+    @_compiled.helper
     def _simplex_one(s, allowed, shrink, out, shrunk, sa, b, x, work_a, work_b, pivots,
                      active, w):  # fmt: skip
         """One horizon of :func:`simplex_weights`: ``out`` (m,) from ``s`` (m, m); the others
@@ -255,7 +254,7 @@ if blas.AVAILABLE:
             out[i] = (w[i] if (w[i] > 0.0 or np.isnan(w[i])) else 0.0) if active[i] else 0.0
         return OK
 
-    @_compiled(f'intp({_F3}, boolean[::1], float64, {_F2})')
+    @_compiled.helper
     def simplex_weights(s, allowed, shrink, out):
         """``out`` (K, m) = :func:`~cloe_ros.core.anticipation.simplex_weights` ``(s, allowed,
         shrink)`` of the cross-products ``s`` (K, m, m) over the ``allowed`` (m,) candidates:
@@ -312,7 +311,7 @@ if blas.AVAILABLE:
 
 if blas.AVAILABLE:
 
-    @_compiled(f'intp({_F1}, {_F2}, {_F1}, {_F1}, intp[::1], {_F2}, {_F2})')
+    @_compiled.helper
     def harmonic_fits(t, y, ahead, omegas, joint, separate, shared):
         """:func:`~cloe_ros.core.anticipation.harmonic_fits` of one series: ``y`` (T, C)
         sampled at ``t`` (T,) s (<= 0), extrapolated to ``ahead`` (K,) s with the fit ``c + a

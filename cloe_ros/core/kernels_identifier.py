@@ -55,7 +55,7 @@ OK, EIGH_FAILED, SVD_FAILED, SOLVE_FAILED = 0, 1, 2, 3
 _compiled = kernels.Compiler(__name__, 'cloe_ros.core.kernels_identifier')
 
 
-@_compiled('float64(float64)')
+@_compiled.helper
 def _nan_to_num(x):
     """``np.nan_to_num(x)`` of a float: NaN to 0, infinities to the largest finite floats."""
     if x != x:
@@ -67,13 +67,13 @@ def _nan_to_num(x):
     return x
 
 
-@_compiled('float64[:, ::1](intp)')
+@_compiled.helper
 def _square(n):
     """A new (n, n) matrix, C-ordered."""
     return np.empty((n, n))
 
 
-@_compiled('void(float64[:, :, ::1], intp, intp[::1], intp, intp, float64[:, ::1])')
+@_compiled.helper
 def _unpack(stats, which, packed, v, p, out):
     """``out`` (WIDTH, WIDTH) = the statistic ``which`` of row ``p`` of vehicle ``v``, from the
     identifier's packed statistics ``stats`` (len(STATISTICS), N_PACKED, N), ``packed`` being
@@ -89,8 +89,7 @@ def _unpack(stats, which, packed, v, p, out):
 if AVAILABLE:
     _F1, _F2, _F3 = 'float64[::1]', 'float64[:, ::1]', 'float64[:, :, ::1]'
 
-    @_compiled('int64(float64[:, :], float64[:, ::1], float64[:, ::1], float64[::1],'
-               ' int64[::1], float64[::1], int64[::1])')  # fmt: skip
+    @_compiled.helper
     def inv_sqrt(g, out, v, w, sizes, work, iwork):
         """``out`` (n, n) = ``identifier._inv_sqrt(g)`` of a symmetric ``g`` (n, n): ``eigh``,
         the eigenvalues below ``1e-12`` of the largest taken as infinite, ``einsum`` of the

@@ -108,7 +108,7 @@ if blas.AVAILABLE:
                 x[i, 0] = ax[i, 0] + br[i, 0]
                 out[k, i] = x[i, 0]
 
-    @_compiled(f'int64({_A2}, {_A2}, {_A2}, {_A2}, float64, {_A1})')
+    @_compiled.helper
     def fit_offset_one(ad, bd, states, refs, ridge, out):
         """``out`` (4,) = ``fit_reference_offsets(ad[None], bd[None], states[None],
         refs[None], ridge)[0]`` (:func:`~cloe_ros.core.prediction.fit_reference_offsets`):

@@ -6,6 +6,7 @@ cannot have it."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 from cloe_ros.core import kernels
-from test.golden_outputs import REPO, run_pinned_script
+from test.golden_outputs import REPO, bags, run_pinned_script
 
 CHECK = r'''
 import numpy as np
@@ -142,14 +143,52 @@ def test_the_kernels_compile_without_a_cache_where_numba_cannot_have_one(tmp_pat
     assert done.stdout.split() == ['False', '1', '3.0']
 
 
-def test_the_compiled_kernels_are_compiled_at_import_and_never_at_a_call():
-    """Every kernel has its one signature compiled when the module is imported, so no message
-    waits on a compile; a call with other types is refused rather than compiled."""
-    compiled = [k for k in vars(kernels).values() if hasattr(k, 'overloads')]
-    assert len(compiled) >= 3
-    for kernel in compiled:
-        assert len(kernel.overloads) == 1, kernel
+MODULES = ('kernels', 'kernels_identifier', 'kernels_covariance', 'kernels_ensemble',
+           'kernels_combine', 'kernels_models', 'blas')
+
+LOADED = r'''
+import importlib, json, sys
+from pathlib import Path
+
+modules = [importlib.import_module(f'cloe_ros.core.{m}') for m in sys.argv[1].split(',')]
+kernels = {f'{m.__name__}.{k}': v for m in modules for k, v in vars(m).items()
+           if hasattr(v, 'overloads') and v.__module__ == m.__name__}
+# a helper is a kernel without a signature of its own: numba may still compile it
+helpers = sorted(name for name, k in kernels.items() if k._can_compile)
+at_import = {name: len(k.overloads) for name, k in kernels.items()}
+if sys.argv[2]:  # then a recorded flight through the engine (cloe_iv, predictions on)
+    from test.golden_outputs import golden_outputs
+    golden_outputs(Path(sys.argv[2]))
+after = {name: len(k.overloads) for name, k in kernels.items()}
+print(json.dumps([helpers, at_import, after]))
+'''
+
+
+def kernels_loaded(bag: str = '') -> tuple[list[str], dict[str, int], dict[str, int]]:
+    """In a new process: the helper kernels' names, and how many signatures each kernel has
+    compiled or loaded after the import and after ``bag`` (if given) ran through the engine."""
+    env = {**os.environ, 'PYTHONPATH': str(REPO)}
+    done = subprocess.run([sys.executable, '-c', LOADED, ','.join(MODULES), bag], env=env,
+                          cwd=REPO, capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    helpers, at_import, after = json.loads(done.stdout.splitlines()[-1])
+    return helpers, at_import, after
+
+
+def test_the_kernels_python_calls_are_compiled_at_import_and_never_at_a_call():
+    """Every kernel Python calls has its one signature compiled (or loaded) when its module is
+    imported, so no message waits on a compile, and a call with other types is refused rather
+    than compiled. The helpers, which only kernels call, are in their callers' machine code:
+    the import loads none of them, and neither does a flight through the engine (the package's
+    Python code calls no helper, which would compile it there)."""
     with pytest.raises(TypeError):
         kernels.interpolate(np.zeros(3, np.float32), np.zeros((3, 1)), np.zeros(2),
                             np.zeros(1, np.intp), np.zeros((2, 1)))  # fmt: skip
-    assert all(len(k.overloads) == 1 for k in compiled)
+    assert len(kernels.interpolate.overloads) == 1
+    helpers, at_import, after_flight = kernels_loaded(str(bags()[0]))
+    assert {'cloe_ros.core.kernels.maximum', 'cloe_ros.core.kernels.iv_filter'} <= set(helpers)
+    called = set(at_import) - set(helpers)
+    assert {'cloe_ros.core.kernels.interpolate', 'cloe_ros.core.kernels.iv_step_filter'} <= called
+    assert {name: at_import[name] for name in called} == dict.fromkeys(called, 1)
+    assert {name: at_import[name] for name in helpers} == dict.fromkeys(helpers, 0)
+    assert after_flight == at_import

@@ -95,13 +95,16 @@ class StepOutputs:
                  'zeta_hat')  # fmt: skip
 
     def __init__(self, est, rows: np.ndarray) -> None:
-        self.zeta_hat, self.theta_hat = est.zeta_hat[rows], est.theta_hat[rows]
-        self.gain_l, self.coupling = est.gain_l[rows], est.coupling[rows]
+        # every row in order (one vehicle, or a whole pool): copies, cheaper than a gather
+        take = ((lambda a: a.copy()) if len(rows) == len(est.zeta_hat)
+                and (len(rows) == 1 or (np.diff(rows) == 1).all()) else (lambda a: a[rows]))
+        self.zeta_hat, self.theta_hat = take(est.zeta_hat), take(est.theta_hat)
+        self.gain_l, self.coupling = take(est.gain_l), take(est.coupling)
         ident = getattr(est, 'identifier', None)
         self.identification = None if ident is None else (
-            ident.excitation[rows], ident.uncertainty[rows], ident.status[rows])  # fmt: skip
+            take(ident.excitation), take(ident.uncertainty), take(ident.status))  # fmt: skip
         model_theta, model_coupling = est.model
-        self.model = model_theta[rows], model_coupling[rows]
+        self.model = take(model_theta), take(model_coupling)
         #: per vehicle: its state and parameters are all finite
         self.finite = (np.isfinite(self.zeta_hat).all(axis=1)
                        & np.isfinite(self.theta_hat).all(axis=1))  # fmt: skip

@@ -150,9 +150,11 @@ class EstimatorPool:
         rows = np.fromiter((self.rows[k] for k in keys), dtype=np.intp, count=len(keys))
         try:
             if len(rows) == len(self.keys):  # everyone: in place, in row order
-                order = np.argsort(rows)
-                tracked = None if tracked is None else tracked[order]
-                self.est.step(zeta[order], r[order], h, tracked)
+                if len(rows) > 1 and not (np.diff(rows) == 1).all():
+                    order = np.argsort(rows)
+                    zeta, r = zeta[order], r[order]
+                    tracked = None if tracked is None else tracked[order]
+                self.est.step(zeta, r, h, tracked)
             else:
                 part = self.est.take(rows)
                 part.step(zeta, r, h, tracked)

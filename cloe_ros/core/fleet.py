@@ -70,7 +70,7 @@ class PooledEstimator:
 
     def step(self, zeta, r, h, tracked=None) -> None:
         """Step this vehicle alone (the pool's other vehicles wait)."""
-        if not self.pool.step([self.key], zeta, r, h, tracked):
+        if self.pool.step([self.key], zeta, r, h, tracked) is None:
             raise np.linalg.LinAlgError('the batched step failed')
 
     def detach(self) -> Rows:
@@ -96,8 +96,8 @@ class StepOutputs:
 
     def __init__(self, est, rows: np.ndarray) -> None:
         # every row in order (one vehicle, or a whole pool): copies, cheaper than a gather
-        take = ((lambda a: a.copy()) if len(rows) == len(est.zeta_hat)
-                and (len(rows) == 1 or (np.diff(rows) == 1).all()) else (lambda a: a[rows]))
+        whole = all_rows_in_order(rows, len(est.zeta_hat))
+        take = (lambda a: a.copy()) if whole else (lambda a: a[rows])
         self.zeta_hat, self.theta_hat = take(est.zeta_hat), take(est.theta_hat)
         self.gain_l, self.coupling = take(est.gain_l), take(est.coupling)
         ident = getattr(est, 'identifier', None)
@@ -143,14 +143,14 @@ class EstimatorPool:
         self.rows = {k: j for j, k in enumerate(self.keys)}
         return own
 
-    def step(self, keys: list, zeta, r, h: float, tracked=None) -> bool:
+    def step(self, keys: list, zeta, r, h: float, tracked=None) -> np.ndarray | None:
         """One step of the vehicles ``keys`` with their measurements (K, 12), references (K, 4)
-        and tracked channels (K, 4) or None, in ``keys``' order; False if it failed (nothing is
-        then known of their state)."""
+        and tracked channels (K, 4) or None, in ``keys``' order. Returns their rows (K,), or
+        None if it failed (nothing is then known of their state)."""
         rows = np.fromiter((self.rows[k] for k in keys), dtype=np.intp, count=len(keys))
         try:
             if len(rows) == len(self.keys):  # everyone: in place, in row order
-                if len(rows) > 1 and not (np.diff(rows) == 1).all():
+                if not all_rows_in_order(rows, len(self.keys)):
                     order = np.argsort(rows)
                     zeta, r = zeta[order], r[order]
                     tracked = None if tracked is None else tracked[order]
@@ -160,8 +160,13 @@ class EstimatorPool:
                 part.step(zeta, r, h, tracked)
                 self.est.put(rows, part)
         except (ArithmeticError, np.linalg.LinAlgError):
-            return False
-        return True
+            return None
+        return rows
+
+
+def all_rows_in_order(rows: np.ndarray, n: int) -> bool:
+    """Whether ``rows`` are the ``n`` rows of a pool in order, ``0, 1, ..., n - 1``."""
+    return len(rows) == n and (n == 1 or bool((np.diff(rows) == 1).all()))
 
 
 class Fleet:
@@ -236,10 +241,9 @@ class Fleet:
                     names = [e.name for e, _ in batch]
                     used = np.array([s.used for s in steps])
                     tracked = _tracked([s.tracked for s in steps])
-                    ok = est.pool.step(names, zeta, used, first.step_s, tracked)
+                    rows = est.pool.step(names, zeta, used, first.step_s, tracked)
+                    ok = rows is not None
                     if ok:
-                        rows = np.fromiter((est.pool.rows[k] for k in names), dtype=np.intp,
-                                           count=len(names))  # fmt: skip
                         outputs = StepOutputs(est.pool.est, rows)
                         if len(batch) > 1:
                             variances = _error_variances(outputs, batch, zeta)

@@ -40,7 +40,6 @@ loaded by themselves: an import loads 25 kernels instead of 64, about 0.2 s less
 
 from __future__ import annotations
 
-import functools
 import warnings
 
 import numpy as np
@@ -68,7 +67,7 @@ class Compiler:
 
     def __call__(self, signature):
         """A kernel Python calls: compiled for ``signature`` when it is decorated."""
-        return functools.partial(self._jit, signature)
+        return lambda func: self._jit(signature, func)
 
     def helper(self, func):
         """A kernel only other kernels call: compiled, for the types they pass, into each

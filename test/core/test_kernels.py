@@ -156,17 +156,16 @@ kernels = {f'{m.__name__}.{k}': v for m in modules for k, v in vars(m).items()
 # a helper is a kernel without a signature of its own: numba may still compile it
 helpers = sorted(name for name, k in kernels.items() if k._can_compile)
 at_import = {name: len(k.overloads) for name, k in kernels.items()}
-if sys.argv[2]:  # then a recorded flight through the engine (cloe_iv, predictions on)
-    from test.golden_outputs import golden_outputs
-    golden_outputs(Path(sys.argv[2]))
+from test.golden_outputs import golden_outputs  # a recorded flight (cloe_iv, predictions on)
+golden_outputs(Path(sys.argv[2]))
 after = {name: len(k.overloads) for name, k in kernels.items()}
 print(json.dumps([helpers, at_import, after]))
 '''
 
 
-def kernels_loaded(bag: str = '') -> tuple[list[str], dict[str, int], dict[str, int]]:
+def kernels_loaded(bag: str) -> tuple[list[str], dict[str, int], dict[str, int]]:
     """In a new process: the helper kernels' names, and how many signatures each kernel has
-    compiled or loaded after the import and after ``bag`` (if given) ran through the engine."""
+    compiled or loaded after the import and after ``bag`` ran through the engine."""
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     done = subprocess.run([sys.executable, '-c', LOADED, ','.join(MODULES), bag], env=env,
                           cwd=REPO, capture_output=True, text=True, timeout=600)  # fmt: skip

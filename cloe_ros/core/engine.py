@@ -49,6 +49,7 @@ source, published before its odometry, is so kept for the new timeline.
 from __future__ import annotations
 
 import bisect
+import functools
 import math
 from collections import Counter, deque
 from collections.abc import Callable
@@ -158,8 +159,9 @@ class EngineConfig:
             msg = f'quaternion_tolerance must be within [0, 1], got {tolerance!r}'
             raise ConfigError(msg)
 
-    @property
+    @functools.cached_property
     def step_ns(self) -> int:
+        """The grid step, ns (asked for at every step: computed once, the config is frozen)."""
         return round(NS / self.rate)
 
 
@@ -959,6 +961,8 @@ class VehicleEngine:
                 return None
             out.append(first)
         t_next = self._t_ns + self.config.step_ns
+        if not self._odom or self._odom[-1][0] < t_next:
+            return None  # (the odometry does not cover it yet: the common case, checked first)
         if not force_reference and not self._reference_complete(t_next):
             return None
         zeta = self._measurement(t_next)

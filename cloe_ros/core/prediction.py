@@ -20,6 +20,7 @@ the caller says so instead of publishing nonsense.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,8 +66,10 @@ class PredictionConfig:
     def enabled(self) -> bool:
         return self.horizon > 0.0
 
-    @property
+    @functools.cached_property
     def n_poses(self) -> int:
+        """Poses per prediction (asked for at every prediction: computed once, the config is
+        frozen)."""
         return int(np.floor(self.horizon / self.step + 1e-9))
 
 

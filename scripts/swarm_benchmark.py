@@ -109,29 +109,19 @@ def publish(n: int, duration: float) -> None:
     rclpy.shutdown()
 
 
-def _spin_while(executor, keep_going) -> None:
-    """Spin ``executor`` while ``keep_going()``, checking it every 0.1 s, as ``run_node`` spins
-    the node: ``spin_until_future_complete`` of a future that never completes runs every
-    callback due in that time in one call. (``spin_once`` runs one callback per call; with a
-    check between calls, that loop cost the floor about 10 us per message on top of the
-    callbacks.)"""
-    from rclpy.task import Future
-
-    while keep_going():
-        executor.spin_until_future_complete(Future(), timeout_sec=0.1)
-
-
 def _serve(node, duration: float, count: list[int]) -> None:
     """Spin ``node`` on an EventsExecutor until the run is done (``SWARM_DONE`` exists, or
     ``duration`` + 40 s), print how many messages ``count`` counted, and shut rclpy down."""
     import rclpy
     from rclpy.experimental import EventsExecutor
 
+    from cloe_ros.ros.common import spin_while
+
     executor = EventsExecutor()
     executor.add_node(node)
     end = time.monotonic() + duration + 40.0
-    _spin_while(executor, lambda: time.monotonic() < end
-                and not Path(os.environ['SWARM_DONE']).exists())  # fmt: skip
+    spin_while(executor, lambda: time.monotonic() < end
+               and not Path(os.environ['SWARM_DONE']).exists(), period=0.1)  # fmt: skip
     print(f'received {count[0]}', flush=True)
     node.destroy_node()
     rclpy.shutdown()
@@ -204,7 +194,7 @@ def listen(n: int, watch: str) -> None:
 
     from cloe_ros.io import cdr
     from cloe_ros.io.messages import decode_diagnostics
-    from cloe_ros.ros.common import qos
+    from cloe_ros.ros.common import qos, spin_while
 
     rclpy.init()
     node = rclpy.create_node('swarm_listener')
@@ -236,9 +226,9 @@ def listen(n: int, watch: str) -> None:
                                  qos(depth=1000), raw=True)  # fmt: skip
     executor = EventsExecutor()
     executor.add_node(node)
-    _spin_while(executor, lambda: not Path(watch).exists())
+    spin_while(executor, lambda: not Path(watch).exists(), period=0.1)
     end = time.monotonic() + 3.0
-    _spin_while(executor, lambda: time.monotonic() < end)
+    spin_while(executor, lambda: time.monotonic() < end, period=0.1)
     p50, p99 = (np.percentile(lat, [50, 99]) if lat else (math.nan, math.nan))
     # (the largest of the reports: those before the load, and the last, are of an idle node)
     print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f} '

@@ -63,6 +63,16 @@ def destroyed_if_init_fails(init: Callable) -> Callable:
     return wrapper
 
 
+def spin_while(executor, keep_going: Callable[[], bool], period: float) -> None:
+    """Spin ``executor`` while ``keep_going()``, asked every ``period`` s: each call of
+    ``spin_until_future_complete``, of a future that never completes (a new one each time: each
+    call adds a callback to it), runs every callback due in ``period``. ``spin_once`` runs one
+    callback per call, and a loop of it with a check between calls cost about as much as a
+    do-nothing callback (EventsExecutor, rclpy 7.1)."""
+    while keep_going():
+        executor.spin_until_future_complete(Future(), timeout_sec=period)
+
+
 def run_node(
     node_factory: Callable[[], Node], args: Sequence[str] | None = None, events: bool = False
 ) -> int:
@@ -72,10 +82,8 @@ def run_node(
     SingleThreadedExecutor, whose every wait rebuilds a wait set of all the node's subscriptions,
     timers and services in Python: with a hundred vehicles' subscriptions that costs more than the
     messages. The EventsExecutor's ``spin()`` does not return when a signal shuts rclpy down
-    (rclpy 7.1), so it spins half a second at a time (``spin_until_future_complete`` of a future
-    that never completes, which runs every callback due in that time) and checks ``rclpy.ok()``
-    in between. ``spin_once`` in that loop ran one callback per call, and the loop's Python
-    around it cost about as much as a do-nothing callback.
+    (rclpy 7.1), so it spins half a second at a time and checks ``rclpy.ok()`` in between
+    (:func:`spin_while`).
 
     SIGINT and SIGTERM reach rclpy as ``ExternalShutdownException``; ``destroy_node`` runs in
     ``finally`` so nodes that hold files (the recorder) close them completely. A node can end the
@@ -103,8 +111,7 @@ def run_node(
         executor = EventsExecutor() if events else SingleThreadedExecutor()
         executor.add_node(node)
         if events:
-            while rclpy.ok():  # (a new future each time: each call adds a callback to it)
-                executor.spin_until_future_complete(Future(), timeout_sec=0.5)
+            spin_while(executor, rclpy.ok, period=0.5)
         else:
             executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -395,12 +395,27 @@ def vehicle_topic(vehicle: str, name: str) -> str:
     return f'{vehicle}/{name}' if vehicle else name
 
 
+def check_same_namespaces(node, vehicles: Iterable[str]) -> None:
+    """Refuse two ``vehicles`` (checked by :func:`check_vehicles`) that name one namespace
+    once resolved against ``node``'s (``/uav1`` and ``uav1`` in the root namespace): the vehicle
+    would be simulated, or inferred and published, twice."""
+    seen: dict[str, str] = {}
+    for v in vehicles:
+        ns = node.resolve_topic_name(vehicle_topic(v, 'odom'), only_expand=True)[: -len('/odom')]
+        if ns in seen:
+            raise ParameterError(
+                f'vehicles {seen[ns]!r} and {v!r} are the same namespace, {ns or "/"}: list it '
+                'once', 'vehicles')  # fmt: skip
+        seen[ns] = v
+
+
 def check_vehicles(vehicles: Iterable[str]) -> list[str]:
     """Validate a ``vehicles`` parameter: unique namespaces made of ``[A-Za-z0-9_/]``."""
     out = []
     for v in vehicles:
         v = v.strip()
-        if not v or any(not (c.isalnum() or c in '_/') for c in v) or '//' in v:
+        # (ASCII only: str.isalnum also takes letters that ROS names do not)
+        if not v or any(not ((c.isascii() and c.isalnum()) or c in '_/') for c in v) or '//' in v:
             raise ParameterError(
                 f'vehicle namespace {v!r} is not valid: use names like /uav1 (letters, digits, '
                 '_ and /)',

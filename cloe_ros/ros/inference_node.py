@@ -49,6 +49,7 @@ from cloe_ros.ros.common import (
     STRING_ARRAY,
     ParameterError,
     accept,
+    check_same_namespaces,
     check_vehicles,
     declare,
     describe,
@@ -161,6 +162,11 @@ class InferenceNode(Node):
         reason = check_shard(self.shard_index, self.shard_count)
         if reason:
             raise ParameterError(reason, 'shard_index')
+        if self.shard_count > 1 and not self.listed and not self.discover:
+            raise ParameterError(
+                f'{self.shard_count} shards split the vehicles listed (vehicles:=[...]) or '
+                'discovered (discover:=true); with neither, the node infers the one '
+                'un-namespaced vehicle, which cannot be split', 'shard_count')  # fmt: skip
         self.publisher_timeout = declared['publisher_timeout']
         self.vehicles: list[str] = []
         reliable = declared['qos_reliability'] == 'reliable'
@@ -192,6 +198,7 @@ class InferenceNode(Node):
         self._missing_since: dict[str, float] = {}
         self._warned_missing: set[str] = set()
         self._discovered: set[str] = set()
+        check_same_namespaces(self, self.listed)
         for v in self.listed or ([] if self.discover else ['']):
             if self._ours(self._namespace(v)):  # (a listed vehicle of another shard: not ours)
                 self._add_vehicle(v)

@@ -65,6 +65,7 @@ from cloe_ros.ros.common import (
     STRING_ARRAY,
     ParameterError,
     accept,
+    check_same_namespaces,
     check_vehicles,
     declare,
     describe,
@@ -148,6 +149,7 @@ class SimulatorNode(Node):
         get = values.__getitem__
         scenario = SCENARIOS[get('scenario')]
         self.vehicles = check_vehicles(get('vehicles') or []) or ['']
+        check_same_namespaces(self, self.vehicles)
         n = len(self.vehicles)
         offsets = np.zeros((n, 3))
         offsets[:, 1] = get('spacing') * np.arange(n)

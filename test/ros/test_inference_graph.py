@@ -217,6 +217,19 @@ def test_a_shard_index_beyond_the_count_is_a_startup_error(context, index, count
     )
 
 
+def test_shards_without_a_list_or_discovery_are_a_startup_error(context):
+    """Without ``vehicles`` or ``discover`` a node infers the one un-namespaced vehicle: every
+    shard but one would sit idle, so each is refused and says why."""
+    from cloe_ros.ros.common import ParameterError
+
+    for index in range(3):
+        with pytest.raises(ParameterError) as info:
+            _inference(context, shard_index=index, shard_count=3)
+        assert str(info.value).startswith(
+            "parameter 'shard_count': 3 shards split the vehicles listed (vehicles:=[...]) or "
+            'discovered (discover:=true)')  # fmt: skip
+
+
 def test_listed_vehicles_outside_the_shard_are_left_to_the_others(context):
     vehicles = [f'/uav{k}' for k in range(1, 13)]
     nodes = [_inference(context, vehicles=vehicles, shard_index=i, shard_count=3)

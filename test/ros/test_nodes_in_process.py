@@ -386,6 +386,12 @@ def in_graph(context, name: str) -> bool:
          "parameter 'scenario': 'loop' is not one of position, trajectory, hover"),
         ('quadrotor_sim', {'vehicles': ['/1a']},
          "parameter 'vehicles': vehicle namespace '/1a' must not start with a digit"),
+        ('quadrotor_sim', {'vehicles': ['/\u00fcav1']},
+         "parameter 'vehicles': vehicle namespace '/\u00fcav1' is not valid"),
+        ('quadrotor_sim', {'vehicles': ['/uav1', 'uav1']},
+         "parameter 'vehicles': vehicles '/uav1' and 'uav1' are the same namespace, /uav1"),
+        ('cloe_inference', {'vehicles': ['uav2', '/uav2/']},
+         "parameter 'vehicles': vehicles 'uav2' and '/uav2' are the same namespace, /uav2"),
     ],
 )  # fmt: skip
 def test_every_node_refuses_a_startup_parameter_in_the_documented_form(
@@ -398,6 +404,7 @@ def test_every_node_refuses_a_startup_parameter_in_the_documented_form(
         'bag_recorder': (BagRecorder, {'output': str(tmp_path / 'bag')}),
         'bag_player': (PlayerNode, {'bag': str(REPO / 'bags' / 'position')}),
         'quadrotor_sim': (SimulatorNode, {}),
+        'cloe_inference': (InferenceNode, {}),
     }[node]
     overrides = [Parameter(k, value=v) for k, v in {**params, **overrides}.items()]
     unique, renamed = unique_node_name()

@@ -239,7 +239,8 @@ def listen(n: int, watch: str) -> None:
 
 
 def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None = None,
-        qos_depth: int | None = None, shards: int = 1) -> dict[str, float]:  # fmt: skip
+        qos_depth: int | None = None, shards: int = 1,
+        qos_reliability: str | None = None) -> dict[str, float]:  # fmt: skip
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     env.setdefault('ROS_DOMAIN_ID', '91')
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -266,7 +267,8 @@ def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None =
                  f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p',
                  'reference_timeout:=5.0', *shard,
                  *(['-p', f'batch_period:={batch}'] if batch is not None else []),
-                 *(['-p', f'qos_depth:={qos_depth}'] if qos_depth is not None else [])],
+                 *(['-p', f'qos_depth:={qos_depth}'] if qos_depth is not None else []),
+                 *(['-p', f'qos_reliability:={qos_reliability}'] if qos_reliability else [])],
                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     receivers = [p for name, p in procs.items() if name.startswith('rx')]
     time.sleep(3.0)  # (discovery)
@@ -354,6 +356,9 @@ def main() -> int:
     parser.add_argument('--qos-depth', type=int, default=None,
                         help="the node's qos_depth, the history of its subscriptions (default: "
                              "the node's default)")  # fmt: skip
+    parser.add_argument('--qos-reliability', choices=('reliable', 'best_effort'), default=None,
+                        help="the node's qos_reliability, of its subscriptions (default: the "
+                             "node's default; the publisher offers reliable either way)")
     parser.add_argument('--shards', type=int, default=1,
                         help='split the vehicles over this many inference nodes (shard_index / '
                              'shard_count), each its own process; CPU is their sum')  # fmt: skip
@@ -385,7 +390,7 @@ def main() -> int:
                       f"{relay_us / floor_us:.1f}x, {1e3 * r['p50']:.0f} / "
                       f"{1e3 * r['p99']:.0f} ms | |", flush=True)  # fmt: skip
             c = run(n, args.duration, 'node', Path(tmp), args.batch_period, args.qos_depth,
-                    args.shards)
+                    args.shards, args.qos_reliability)
             node_us = 1e6 * c['cpu_s'] / c['sent']
             print(f"| {n} | {f['received']} of {f['sent']}, {floor_us:.0f} us | "
                   f"{c['states']} of {odom} ({100 * c['states'] / odom:.1f} %), {node_us:.0f} us, "

@@ -162,8 +162,9 @@ def add_infer(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     p.add_argument(
         '--jobs', '-j', type=int, default=0,
-        help='bags inferred at once, in separate processes (default 0: one per core; the '
-        'vehicles of one bag run in one process)',
+        help='processes at once (default 0: one per core): several bags, one per process; one '
+        'bag of several vehicles, its vehicles split into that many groups, the outputs written '
+        'into the one output bag',
     )  # fmt: skip
     p.add_argument('--algorithm', choices=ALGORITHMS, help='estimator (default: cloe_iv)')
     p.add_argument('--rate', type=float, help='estimator rate, Hz of message time (default 100)')

@@ -2,11 +2,17 @@
 
 ``cloe infer BAG... -o DIR --jobs N``: many bags, ``N`` at once in separate processes (one per
 core by default), each into ``DIR/<its name>``. A bag that fails is reported and the others are
-still written; the exit status is then 1."""
+still written; the exit status is then 1.
+
+One bag of several vehicles is split the same way: its vehicles in ``N`` groups, each group
+inferred in a process of its own into a part, and the parts merged into ``OUT_BAG`` in log-time
+order. Each vehicle's outputs are those of a run over all of them in one process (an engine's
+estimates do not depend on the vehicles it is batched with)."""
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import shutil
 import sys
 import time
@@ -14,6 +20,7 @@ from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from queue import Empty
 
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.outputs import check_folder, make_folder
@@ -91,134 +98,297 @@ def infer_bag(
     compression: str = 'zstd',
     progress=None,
 ) -> InferResult:
-    """Run the engine of every vehicle over ``bag`` and write the outputs to ``output``."""
+    """Run the engine of every vehicle over ``bag`` (of ``vehicles``: default all) and write the
+    outputs to ``output``, in this process."""
     engine_config, output_config = build_configs(settings)
     start = time.monotonic()
     with BagReader(bag) as reader:
-        topics = {name: info.msgtype for name, info in reader.topics.items()}
-        found = check_inputs(topics, bag)
-        if vehicles:
-            wanted = [v.rstrip('/') for v in vehicles]
-            missing = [v for v in wanted if v not in found]
-            if missing:
-                raise CliError(
-                    f'{bag}: no odom/reference for {", ".join(missing)}; found: '
-                    + ', '.join(v or '/' for v in found)
-                )
-            found = wanted
-        if reader.message_count == 0:
-            raise CliError(f'{bag}: the bag holds no messages')
-        empty = [f'{v}/{name}' for v in found for name in (ODOM, REFERENCE)
-                 if reader.topics[f'{v}/{name}'].count == 0]  # fmt: skip
-        if empty:
-            others = [v or '/' for v in found if not any(e.rsplit('/', 1)[0] == v for e in empty)]
-            raise CliError(
-                f'{bag}: no messages on {", ".join(empty)}: nothing to infer'
-                + (f' (select the other vehicles with --vehicles {" ".join(others)})'
-                   if others else '')
-            )  # fmt: skip
+        found = _vehicles(reader, bag, vehicles)
         if output.exists():
             raise CliError(f'{output} exists already, not overwriting.')
-        # the vehicles' engines as one fleet: their estimators step together (same estimates)
-        fleet = Fleet()
-        engines = {v: fleet.add(VehicleEngine(engine_config, name=v)) for v in found}
-        batches = RecordingBatches(fleet, engine_config.step_ns)
-        # bag topics are absolute: the un-namespaced vehicle's outputs go to /<output_ns>/...
-        encoders = {
-            v: OutputEncoder(output_config, v or '/', engine_config.prediction.enabled)
-            for v in found
-        }
-        malformed = {v: 0 for v in found}
-        route = input_routes(topics, found)
-        copies = [
-            f'{v}/{name}' for v in found for name in COPIED if f'{v}/{name}' in topics
-        ] if copy_inputs else []  # fmt: skip
-        span = max(reader.end_ns - reader.start_ns, 1)
+        copies = _copies(reader, found) if copy_inputs else []
+        engines, encoders = _engines(found, engine_config, output_config)
         written: Counter = Counter()
         writer = BagWriter(output, compression=compression)
         try:
             with writer:
-                # what produced the outputs, for readers of the bag (`cloe report` labels them)
-                key = f'cloe_ros.{output_config.output_ns.strip("/")}'
-                writer.set_custom_data(f'{key}.algorithm', engine_config.estimator.algorithm)
-                writer.set_custom_data(f'{key}.rate_hz', f'{engine_config.rate:g}')
-                for topic in copies:
-                    writer.add_topic(topic, topics[topic], reader.topics[topic].offered_qos)
-                for enc in encoders.values():
-                    for topic, msgtype in enc.topics.items():
-                        latched = topic in enc.latched_topics
-                        writer.add_topic(topic, msgtype, [LATCHED_QOS] if latched else ())
+                _add_topics(writer, reader, copies, encoders, engine_config, output_config)
 
-                def emit(vehicle, estimates):
-                    engine, enc = engines[vehicle], encoders[vehicle]
-                    for est in estimates:
-                        for topic, stamp, data in enc.encode(
-                            est, engine.world_frame or '', engine.child_frame
-                        ):
-                            writer.write(topic, stamp, data)
-                            written[topic] += 1
+                def write(topic, stamp, data):
+                    writer.write(topic, stamp, data)
+                    written[topic] += 1
 
-                def emit_all(estimates):
-                    for v, of_vehicle in estimates.items():
-                        emit(v, of_vehicle)
-
-                count = 0
-                received: Counter = Counter()
-                for topic, log_ns, raw in reader.messages(set(route) | set(copies)):
-                    if topic in copies:
-                        writer.write(topic, log_ns, raw)
-                        written[topic] += 1
-                    target = route.get(topic)
-                    if target is None:
-                        continue
-                    received[topic] += 1
-                    vehicle, kind = target
-                    emit_all(batches.before(log_ns))
-                    try:
-                        feed(engines[vehicle], kind, raw)
-                    except messages.MessageError:
-                        malformed[vehicle] += 1
-                        continue
-                    batches.fed(vehicle, log_ns)
-                    count += 1
-                    if progress is not None and count % 500 == 0:
-                        progress('infer', (log_ns - reader.start_ns) / span)
-                emit_all(batches.flush())
-                for v in found:
-                    emit(v, engines[v].finish())
-                unusable = {
-                    v: _unusable(bag, v, engines[v], malformed[v], received)
-                    for v in found
-                    if engines[v].stats.steps == 0
-                }
-                if len(unusable) == len(found):
-                    raise CliError('; '.join(unusable.values()) + '.')
+                stats = _run(reader, bag, engines, encoders, engine_config, write, copies,
+                             progress)  # fmt: skip
+                if len(stats['unusable']) == len(found):
+                    raise CliError('; '.join(stats['unusable'].values()) + '.')
         except BaseException as err:
-            # an output cut short looks complete to the next tool: do not leave it behind
-            writer.abort()
-            shutil.rmtree(output, ignore_errors=True)
-            if isinstance(err, WriterError) and err.path == output:  # the output's own failure
-                reason = err.reason or writer.error or err
-                msg = f'cannot write {output}: {reason}. No output written ({output} removed).'
-                raise CliError(msg) from err
-            if isinstance(err, CloeError):
-                msg = f'{err} No output written ({output} removed).'
-                raise type(err)(msg) from err
-            raise
+            raise _failed(err, writer, output) from err
         if progress is not None:
             progress('infer', 1.0)
         duration = (reader.end_ns - reader.start_ns) / NS
-    return InferResult(
-        vehicles=found,
-        steps={v: e.stats.steps for v, e in engines.items()},
-        rejected={v: e.stats.rejected for v, e in engines.items()},
-        malformed=malformed,
-        time_jumps={v: e.stats.time_jumps for v, e in engines.items()},
-        duration_s=duration,
-        wall_s=time.monotonic() - start,
-        written=dict(written),
-        unusable=unusable,
-    )
+    return InferResult(vehicles=found, duration_s=duration, wall_s=time.monotonic() - start,
+                       written=dict(written), **stats)  # fmt: skip
+
+
+def infer_split(
+    bag: Path, output: Path, settings: dict, jobs: int, vehicles: list[str] | None = None,
+    copy_inputs: bool = True, compression: str = 'zstd', progress=None,
+) -> InferResult:  # fmt: skip
+    """:func:`infer_bag` with the vehicles in ``jobs`` groups (0: one per core; never more
+    groups than vehicles), each run in a process of its own that sends its outputs here, where
+    they are written into ``output`` beside the copies of the inputs, as one run writes them.
+    One group: :func:`infer_bag` itself."""
+    start = time.monotonic()
+    with BagReader(bag) as reader:
+        found = _vehicles(reader, bag, vehicles)
+        count = worker_count(jobs, len(found))
+        if count > 1:
+            return _split(reader, bag, output, settings, found, count, copy_inputs, compression,
+                          progress, start)  # fmt: skip
+    return infer_bag(bag, output, settings, vehicles, copy_inputs, compression, progress)
+
+
+def _split(reader, bag, output, settings, found, count, copy_inputs, compression, progress,
+           start) -> InferResult:  # fmt: skip
+    """:func:`infer_split` of ``count`` > 1 groups, ``reader`` open on ``bag``."""
+    engine_config, output_config = build_configs(settings)
+    if output.exists():
+        raise CliError(f'{output} exists already, not overwriting.')
+    groups = [found[len(found) * i // count : len(found) * (i + 1) // count]
+              for i in range(count)]  # fmt: skip
+    copies = _copies(reader, found) if copy_inputs else []
+    encoders = {v: _encoder(v, engine_config, output_config) for v in found}
+    # forked workers inherit the engine's modules, loaded kernels and the settings checked
+    ctx = multiprocessing.get_context('fork')
+    queue = ctx.Queue(maxsize=4 * count)
+    workers = [ctx.Process(target=_run_group, args=(bag, settings, group, queue, i), daemon=True)
+               for i, group in enumerate(groups)]  # fmt: skip
+    written: Counter = Counter()
+    done: dict[int, dict] = {}
+    fractions = [0.0] * count
+    writer = BagWriter(output, compression=compression)
+    try:
+        with writer:
+            _add_topics(writer, reader, copies, encoders, engine_config, output_config)
+
+            def write(topic, stamp, data):
+                writer.write(topic, stamp, data)
+                written[topic] += 1
+
+            def take(wait: bool) -> None:
+                """What the workers sent, written; until they are all done if ``wait``."""
+                while len(done) < count:
+                    try:
+                        index, kind, payload = (queue.get(timeout=0.5) if wait
+                                                else queue.get_nowait())  # fmt: skip
+                    except Empty:
+                        if not wait:
+                            return
+                        for i, w in enumerate(workers):
+                            if i not in done and w.exitcode is not None:
+                                names = ', '.join(v or '/' for v in groups[i])
+                                raise CliError(f'{bag}: the process inferring {names} ended '
+                                               f'(exit status {w.exitcode})') from None
+                        continue
+                    if kind == 'out':
+                        for topic, stamp, data in payload:
+                            write(topic, stamp, data)
+                    elif kind == 'progress':
+                        fractions[index] = payload
+                        if progress is not None:
+                            progress('infer', min(fractions))
+                    elif kind == 'done':
+                        done[index] = payload
+                    else:
+                        raise CliError(payload)
+
+            for w in workers:
+                w.start()
+            for n, (topic, log_ns, raw) in enumerate(reader.messages(copies)):
+                write(topic, log_ns, raw)
+                if n % 200 == 0:
+                    take(wait=False)
+            take(wait=True)
+            stats = {key: {v: x for i in range(count) for v, x in done[i][key].items()}
+                     for key in done[0]}  # fmt: skip
+            if len(stats['unusable']) == len(found):
+                raise CliError('; '.join(stats['unusable'][v] for v in found) + '.')
+    except BaseException as err:
+        for w in workers:
+            if w.is_alive():
+                w.kill()
+        raise _failed(err, writer, output) from err
+    finally:
+        for w in workers:
+            if w.pid is not None:
+                w.join()
+        queue.close()
+    if progress is not None:
+        progress('infer', 1.0)
+    stats = {key: {v: stats[key][v] for v in found if v in stats[key]} for key in stats}
+    return InferResult(vehicles=found, duration_s=(reader.end_ns - reader.start_ns) / NS,
+                       wall_s=time.monotonic() - start, written=dict(written),
+                       **stats)  # fmt: skip
+
+
+def _run_group(bag: Path, settings: dict, group: list[str], queue, index: int) -> None:
+    """A worker of :func:`infer_split`: the engines of ``group`` over ``bag``; puts on
+    ``queue`` ``(index, kind, payload)``: ``'out'`` and a list of ``(topic, stamp, cdr)``,
+    ``'progress'`` and a fraction, then ``'done'`` and the run's statistics, or ``'error'`` and
+    why."""
+    try:
+        engine_config, output_config = build_configs(settings)
+        engines, encoders = _engines(group, engine_config, output_config)
+        out: list = []
+
+        def write(topic, stamp, data):
+            out.append((topic, stamp, bytes(data)))
+            if len(out) >= 1000:
+                queue.put((index, 'out', list(out)))
+                out.clear()
+
+        def progress(_label, fraction):
+            queue.put((index, 'progress', fraction))
+
+        with BagReader(bag) as reader:
+            stats = _run(reader, bag, engines, encoders, engine_config, write, [], progress)
+        queue.put((index, 'out', out))
+        queue.put((index, 'done', stats))
+    except (CloeError, BagError) as err:
+        queue.put((index, 'error', str(err)))
+    except BaseException as err:  # (whatever it is, the parent says it and removes the output)
+        queue.put((index, 'error', f'{bag}: {type(err).__name__}: {err}'))
+
+
+def _encoder(vehicle: str, engine_config, output_config) -> OutputEncoder:
+    # bag topics are absolute: the un-namespaced vehicle's outputs go to /<output_ns>/...
+    return OutputEncoder(output_config, vehicle or '/', engine_config.prediction.enabled)
+
+
+def _engines(found: list[str], engine_config, output_config) -> tuple[dict, dict]:
+    """The engines of the vehicles ``found``, as one fleet (their estimators step together; the
+    same estimates as each alone), and their output encoders."""
+    fleet = Fleet()
+    engines = {v: fleet.add(VehicleEngine(engine_config, name=v)) for v in found}
+    return engines, {v: _encoder(v, engine_config, output_config) for v in found}
+
+
+def _copies(reader: BagReader, found: list[str]) -> list[str]:
+    """The input topics of the vehicles ``found`` copied into the output."""
+    return [f'{v}/{name}' for v in found for name in COPIED if f'{v}/{name}' in reader.topics]
+
+
+def _add_topics(writer, reader, copies, encoders, engine_config, output_config) -> None:
+    """The output's custom data (what produced it: `cloe report` labels the outputs with it),
+    its copies of the inputs and every output topic of the vehicles' ``encoders``."""
+    key = f'cloe_ros.{output_config.output_ns.strip("/")}'
+    writer.set_custom_data(f'{key}.algorithm', engine_config.estimator.algorithm)
+    writer.set_custom_data(f'{key}.rate_hz', f'{engine_config.rate:g}')
+    for topic in copies:
+        writer.add_topic(topic, reader.topics[topic].msgtype, reader.topics[topic].offered_qos)
+    for enc in encoders.values():
+        for topic, msgtype in enc.topics.items():
+            writer.add_topic(topic, msgtype, [LATCHED_QOS] if topic in enc.latched_topics else ())
+
+
+def _run(reader, bag, engines, encoders, engine_config, write, copies, progress) -> dict:
+    """The ``engines`` over the open ``reader``, in recording order and in batches (a grid step
+    of recording time each: :class:`RecordingBatches`); every output, and every message of the
+    topics ``copies``, handed to ``write(topic, stamp, cdr)``. Returns the run's statistics per
+    vehicle (:class:`InferResult`'s steps, rejected, malformed, time_jumps, unusable)."""
+    found = list(engines)
+    topics = {name: info.msgtype for name, info in reader.topics.items()}
+    route = input_routes(topics, found)
+    batches = RecordingBatches(next(iter(engines.values())).fleet, engine_config.step_ns)
+    malformed = {v: 0 for v in found}
+    received: Counter = Counter()
+    span = max(reader.end_ns - reader.start_ns, 1)
+    copied = set(copies)
+
+    def emit(vehicle, estimates):
+        engine, enc = engines[vehicle], encoders[vehicle]
+        for est in estimates:
+            for topic, stamp, data in enc.encode(est, engine.world_frame or '',
+                                                 engine.child_frame):  # fmt: skip
+                write(topic, stamp, data)
+
+    def emit_all(estimates):
+        for v, of_vehicle in estimates.items():
+            emit(v, of_vehicle)
+
+    count = 0
+    for topic, log_ns, raw in reader.messages(set(route) | copied):
+        if topic in copied:
+            write(topic, log_ns, raw)
+        target = route.get(topic)
+        if target is None:
+            continue
+        received[topic] += 1
+        vehicle, kind = target
+        emit_all(batches.before(log_ns))
+        try:
+            feed(engines[vehicle], kind, raw)
+        except messages.MessageError:
+            malformed[vehicle] += 1
+            continue
+        batches.fed(vehicle, log_ns)
+        count += 1
+        if progress is not None and count % 500 == 0:
+            progress('infer', (log_ns - reader.start_ns) / span)
+    emit_all(batches.flush())
+    for v in found:
+        emit(v, engines[v].finish())
+    unusable = {v: _unusable(bag, v, engines[v], malformed[v], received)
+                for v in found if engines[v].stats.steps == 0}  # fmt: skip
+    return {
+        'steps': {v: e.stats.steps for v, e in engines.items()},
+        'rejected': {v: e.stats.rejected for v, e in engines.items()},
+        'malformed': malformed,
+        'time_jumps': {v: e.stats.time_jumps for v, e in engines.items()},
+        'unusable': unusable,
+    }
+
+
+def _failed(err: BaseException, writer: BagWriter, output: Path) -> BaseException:
+    """After ``err`` while writing ``output``: the output removed (an output cut short looks
+    complete to the next tool), and the error to raise, saying so."""
+    writer.abort()
+    shutil.rmtree(output, ignore_errors=True)
+    if isinstance(err, WriterError) and err.path == output:  # the output's own failure
+        reason = err.reason or writer.error or err
+        return CliError(f'cannot write {output}: {reason}. No output written ({output} removed).')
+    if isinstance(err, CloeError):
+        return type(err)(f'{err} No output written ({output} removed).')
+    return err
+
+
+def _vehicles(reader: BagReader, bag: Path, vehicles: list[str] | None) -> list[str]:
+    """The vehicles of the open ``reader`` to infer: ``vehicles`` (default: every one found),
+    each with messages on its odom and reference; a clear error otherwise."""
+    topics = {name: info.msgtype for name, info in reader.topics.items()}
+    found = check_inputs(topics, bag)
+    if vehicles:
+        wanted = [v.rstrip('/') for v in vehicles]
+        missing = [v for v in wanted if v not in found]
+        if missing:
+            raise CliError(
+                f'{bag}: no odom/reference for {", ".join(missing)}; found: '
+                + ', '.join(v or '/' for v in found)
+            )
+        found = wanted
+    if reader.message_count == 0:
+        raise CliError(f'{bag}: the bag holds no messages')
+    empty = [f'{v}/{name}' for v in found for name in (ODOM, REFERENCE)
+             if reader.topics[f'{v}/{name}'].count == 0]  # fmt: skip
+    if empty:
+        others = [v or '/' for v in found if not any(e.rsplit('/', 1)[0] == v for e in empty)]
+        raise CliError(
+            f'{bag}: no messages on {", ".join(empty)}: nothing to infer'
+            + (f' (select the other vehicles with --vehicles {" ".join(others)})'
+               if others else '')
+        )  # fmt: skip
+    return found
 
 
 def _unusable(bag: Path, vehicle: str, engine: VehicleEngine, malformed: int, received) -> str:
@@ -275,8 +445,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_many(args, settings)
     bar = ProgressBar(enabled=not args.quiet)
     try:
-        result = infer_bag(
-            args.bag[0], args.output, settings, args.vehicles, not args.no_inputs,
+        result = infer_split(
+            args.bag[0], args.output, settings, args.jobs, args.vehicles, not args.no_inputs,
             args.compression, bar,
         )  # fmt: skip
     except BagError as err:
@@ -297,8 +467,9 @@ def _infer_one(job: tuple) -> tuple[InferResult | None, str]:
 
 
 def _run_many(args: argparse.Namespace, settings: dict) -> int:
-    """Every bag into ``args.output/<its name>``, ``--jobs`` at once."""
-    names = [b.resolve().name for b in args.bag]
+    """Every bag into ``args.output/<its name>`` (a single ``.mcap`` file's name without the
+    suffix), ``--jobs`` at once."""
+    names = [_output_name(b) for b in args.bag]
     twice = sorted(n for n, count in Counter(names).items() if count > 1)
     if twice:
         raise CliError(
@@ -307,6 +478,7 @@ def _run_many(args: argparse.Namespace, settings: dict) -> int:
         )
     out = args.output
     check_folder(out, False, None)
+    created = not out.exists()
     make_folder(out)
     jobs = worker_count(args.jobs, len(args.bag))
     work = [(bag, out / name, settings, args.vehicles, not args.no_inputs, args.compression)
@@ -325,5 +497,14 @@ def _run_many(args: argparse.Namespace, settings: dict) -> int:
     for why in failed:
         print(f'ERROR: {why}', file=sys.stderr)
     if len(failed) == len(work):
+        if created:
+            shutil.rmtree(out, ignore_errors=True)  # (empty: nothing was written)
         raise CliError(f'none of the {len(work)} bags could be inferred')
     return 1 if failed else 0
+
+
+def _output_name(bag: Path) -> str:
+    """The name of ``bag``'s output among many: the bag's folder name, or a single ``.mcap``
+    file's name without its suffix."""
+    name = bag.resolve().name
+    return name[: -len('.mcap')] if bag.is_file() and name.endswith('.mcap') else name

@@ -881,7 +881,7 @@ def test_the_vehicles_of_a_bag_step_together_as_each_alone(sim_bag, tmp_path, ca
     shifts = {'/uav1': (0, 0.0), '/uav2': (370_000_000, 2.0), '/uav3': (1_100_000_000, 0.0)}
     together = _moved_bag(sim_bag, tmp_path / 'together', shifts)
     monkeypatch.setattr(EstimatorPool, 'step', counted)
-    status, _, err = run_infer(capsys, together, '-o', tmp_path / 'out', '-q')
+    status, _, err = run_infer(capsys, together, '-o', tmp_path / 'out', '-q', '-j', '1')
     assert status == 0, err
     assert sizes.count(3) > 1000
     monkeypatch.setattr(EstimatorPool, 'step', step)
@@ -900,3 +900,73 @@ def test_the_vehicles_of_a_bag_step_together_as_each_alone(sim_bag, tmp_path, ca
             else:
                 np.testing.assert_allclose([m.data for m in got], [m.data for m in want],
                                            rtol=1e-9, atol=1e-9)  # fmt: skip
+
+
+def log_times(bag: Path) -> list[int]:
+    with BagReader(bag) as reader:
+        return [t for _, t, _ in reader.messages()]
+
+
+def test_the_vehicles_of_one_bag_split_over_processes_as_in_one(sim_bag, tmp_path, capsys):
+    """``cloe infer BAG -o OUT -j 2`` with three vehicles: two groups, each in a worker process
+    that sends its outputs to the one writing the bag, which then has the topics, counts, log
+    times, custom data and outputs of a run in one process (``-j 1``), and nothing else is left
+    in the output's folder."""
+    shifts = {'/uav1': (0, 0.0), '/uav2': (370_000_000, 2.0), '/uav3': (1_100_000_000, 0.0)}
+    bag = _moved_bag(sim_bag, tmp_path / 'in' / 'three', shifts)
+    one, split = tmp_path / 'out' / 'one', tmp_path / 'out' / 'split'
+    for out, jobs in ((one, '1'), (split, '2')):
+        status, stdout, err = run_infer(capsys, bag, '-o', out, '-q', '-j', jobs)
+        assert status == 0, err
+        assert stdout.count(' steps, 0 input(s) rejected') == 3, stdout
+    assert sorted(p.name for p in (tmp_path / 'out').iterdir()) == ['one', 'split']
+    assert topic_counts(split) == topic_counts(one)
+    with BagReader(one) as a, BagReader(split) as b:
+        assert b.custom_data == a.custom_data
+        assert {n: (i.msgtype, i.offered_qos) for n, i in b.topics.items()} == {
+            n: (i.msgtype, i.offered_qos) for n, i in a.topics.items()}
+    assert sorted(log_times(split)) == sorted(log_times(one))
+    for ns in shifts:
+        got, want = decoded(split, ns + '/cloe/state'), decoded(one, ns + '/cloe/state')
+        assert len(got) == len(want) > 1000
+        np.testing.assert_array_equal(odometry_arrays(got)[1], odometry_arrays(want)[1])
+        got, want = decoded(split, ns + '/cloe/parameters'), decoded(one, ns + '/cloe/parameters')
+        np.testing.assert_array_equal([m.data for m in got], [m.data for m in want])
+
+
+def test_a_split_run_without_one_usable_vehicle_is_an_error(sim_bag, tmp_path, capsys):
+    """Two vehicles, every odometry message malformed, split over two processes: one error
+    naming both, and no output left behind."""
+    bag = tmp_path / 'in' / 'bag'
+    with BagReader(sim_bag) as reader, BagWriter(bag) as writer:
+        for ns in ('/uav1', '/uav2'):
+            for name in ('/odom', '/reference'):
+                writer.add_topic(ns + name, reader.topics[name].msgtype)
+        for topic, t, raw in reader.messages(['/odom', '/reference']):
+            for ns in ('/uav1', '/uav2'):
+                writer.write(ns + topic, t, b'\x00\x01\x00\x00' if topic == '/odom' else raw)
+    out = tmp_path / 'out' / 'bag'
+    status, _, err = run_infer(capsys, bag, '-o', out, '-q', '-j', '2')
+    assert status == 1
+    assert err.startswith(f'ERROR: {bag}: no usable input for vehicle /uav1: '), err
+    assert 'no usable input for vehicle /uav2: ' in err and err.endswith(
+        f'. No output written ({out} removed).\n'), err
+    assert not out.exists() and list(out.parent.iterdir()) == []
+
+
+def test_many_bags_name_a_single_file_output_without_its_suffix(sim_bag, tmp_path, capsys):
+    """A bag given as its single ``.mcap`` file is written to ``DIR/<name without .mcap>``; a run
+    in which every bag fails leaves no folder behind."""
+    single = tmp_path / 'in' / 'flight.mcap'
+    single.parent.mkdir()
+    shutil.copyfile(mcap_file(sim_bag), single)
+    out = tmp_path / 'many'
+    status, stdout, err = run_infer(capsys, single, sim_bag, '-o', out, '-q', '-j', '1')
+    assert status == 0, err
+    assert sorted(p.name for p in out.iterdir()) == ['flight', 'sim']
+    assert stdout.count('/: 1501 steps, 0 input(s) rejected') == 2, stdout
+    nowhere = tmp_path / 'nowhere'
+    status, _, err = run_infer(capsys, tmp_path / 'missing1', tmp_path / 'missing2', '-o',
+                               nowhere, '-q')  # fmt: skip
+    assert status == 1 and err.endswith('ERROR: none of the 2 bags could be inferred\n'), err
+    assert not nowhere.exists()

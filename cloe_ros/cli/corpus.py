@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from cloe_ros.cli.errors import CliError
-from cloe_ros.cli.outputs import check_new_file
+from cloe_ros.cli.outputs import check_new_file, json_safe
 from cloe_ros.cli.workers import worker_count
 from cloe_ros.core.evaluation import BASELINES, HORIZONS, FlightScore, score_flight
 from cloe_ros.errors import CloeError
@@ -99,8 +99,8 @@ def run_corpus(args) -> int:
         raise CliError('no flight could be scored')
     print(format_corpus(scores, args.score_from))
     if args.json:
-        args.json.write_text(json.dumps(corpus_summary(scores, settings, args.score_from),
-                                        indent=2, default=float))  # fmt: skip
+        args.json.write_text(json.dumps(json_safe(corpus_summary(scores, settings,
+                                                                 args.score_from)), indent=2))
     return 1 if failed else 0
 
 
@@ -120,9 +120,11 @@ def corpus_summary(scores: list[FlightScore], settings: dict, score_from: float)
 
 
 def pooled_coverage(scores: list[FlightScore]) -> np.ndarray:
-    """The fraction of all scored positions of the corpus inside their radius, per horizon."""
+    """The fraction of all scored positions of the corpus inside their radius, per horizon (NaN
+    for a horizon no flight scored)."""
     inside = np.nansum([s.coverage * s.count for s in scores], axis=0)
-    return inside / np.maximum(np.sum([s.count for s in scores], axis=0), 1)
+    count = np.sum([s.count for s in scores], axis=0)
+    return np.where(count > 0, inside / np.maximum(count, 1), np.nan)
 
 
 def format_corpus(scores: list[FlightScore], score_from: float) -> str:

@@ -15,7 +15,7 @@ import numpy as np
 
 from cloe_ros.cli.commands import DEFAULT_ALGORITHMS, DEFAULT_RATE, DEFAULT_SCORE_FROM_SIM
 from cloe_ros.cli.errors import CliError
-from cloe_ros.cli.outputs import check_new_file
+from cloe_ros.cli.outputs import check_new_file, json_safe
 from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.core.engine import NS
 from cloe_ros.core.evaluation import (
@@ -308,7 +308,7 @@ def run_sim(args) -> int:
         out['algorithms'][algorithm] = entry
     print(f'\n({time.monotonic() - start:.0f} s)')
     if args.json:
-        args.json.write_text(json.dumps(out, indent=2, default=float))
+        args.json.write_text(json.dumps(json_safe(out), indent=2))
     return 0
 
 
@@ -402,7 +402,7 @@ def run_bag(args) -> int:
                                         'prediction_all': _score_dict(score_all),
                                         'coupling_final': run.coupling[-1].tolist()}  # fmt: skip
     if args.json:
-        args.json.write_text(json.dumps(out, indent=2, default=float))
+        args.json.write_text(json.dumps(json_safe(out), indent=2))
     return 0
 
 

@@ -7,6 +7,8 @@ writing a file or a folder of results (``cloe evaluate --json``, ``cloe paper -o
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 from pathlib import Path
 
@@ -52,3 +54,21 @@ def make_folder(folder: Path) -> None:
         raise CliError(f'cannot create the folder {folder}: {err.strerror or err}') from err
     if not os.access(folder, os.W_OK):
         raise CliError(f'cannot write into the folder {folder}: permission denied')
+
+
+def json_safe(value):
+    """``value`` (dicts, lists, tuples, numbers, numpy scalars and arrays) with every number a
+    JSON number: NaN and infinities become null (strict JSON has neither)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if hasattr(value, 'tolist') and not isinstance(value, numbers.Number):  # (numpy arrays)
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        return float(value) if math.isfinite(value) else None
+    return value

@@ -36,7 +36,7 @@ import numpy as np
 from cloe_ros.cli.analysis import Score, interpolate, score_output, state_errors
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.infer import InferResult, check_inputs, infer_bag
-from cloe_ros.cli.outputs import check_folder, make_folder
+from cloe_ros.cli.outputs import check_folder, json_safe, make_folder
 from cloe_ros.cli.progress import ProgressBar
 from cloe_ros.core.evaluation import HORIZONS, PredictionScore, score_positions
 from cloe_ros.core.metrics import (
@@ -207,19 +207,6 @@ class VehicleReport:
     data: dict
     #: Said instead of the tables when there is nothing to score.
     remark: str = 'no inference output for this vehicle in the bag'
-
-
-def _finite(value):
-    """JSON-safe numbers: NaN and infinities become null."""
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def _score_errors(name: str, against: str, err: np.ndarray, t: np.ndarray) -> Score:
@@ -883,7 +870,7 @@ def _report(args, bag, folder, settings, topics, counts, outputs, bar, start, sp
         'horizons_s': list(HORIZONS),
         'vehicles': {r.label: r.data for r in reports},
     }
-    (folder / 'report.json').write_text(json.dumps(_finite(numbers), indent=2) + '\n')
+    (folder / 'report.json').write_text(json.dumps(json_safe(numbers), indent=2) + '\n')
     bar('write the report', 1.0)
     bar.close()
 

@@ -269,3 +269,24 @@ def test_evaluate_corpus_refuses_paths_without_bags(tmp_path, capsys):
     assert 'no bag' in capsys.readouterr().err
     assert main(['evaluate', 'corpus', str(tmp_path / 'missing')]) == 1
     assert 'does not exist' in capsys.readouterr().err
+
+
+def test_a_horizon_no_flight_reaches_is_nan_not_zero(tmp_path, capsys):
+    """Flights too short for the 5 s horizon: its pooled coverage is printed as nan (before:
+    0.000, as if every position had been outside its radius) and written as null, with the
+    other numbers no flight has (the JSON is strict: no NaN)."""
+    from bag_fixtures import simulate, write_sim_bag
+
+    write_sim_bag(tmp_path / 'corpus' / 'short', simulate(duration=4.0))
+    out = tmp_path / 'corpus.json'
+    status = main(['evaluate', 'corpus', str(tmp_path / 'corpus'), '--score-from', '1', '-q',
+                   '--jobs', '1', '--json', str(out)])  # fmt: skip
+    printed = capsys.readouterr()
+    assert status == 0, printed.err
+    pooled = next(line for line in printed.out.splitlines() if 'pooled over the flights' in line)
+    assert pooled.split(': ')[1].split()[-1] == 'nan', pooled
+    text = out.read_text()
+    assert 'NaN' not in text and 'Infinity' not in text
+    data = json.loads(text)
+    assert data['pooled_coverage'][-1] is None
+    assert all(0.0 <= c <= 1.0 for c in data['pooled_coverage'][:-1])

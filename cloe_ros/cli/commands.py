@@ -300,7 +300,8 @@ def add_evaluate(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     c.add_argument(
         '--jobs', '-j', type=int, default=0,
-        help='flights evaluated at once, in separate processes (default 0: one per core)',
+        help='flights evaluated at once, in separate processes (default 0: one per core; with '
+        'more processes than bags, each vehicle of a bag of several is a job of its own)',
     )  # fmt: skip
     c.add_argument(
         '--score-from', type=float, default=5.0,

@@ -59,15 +59,38 @@ def find_bags(paths: list[Path]) -> list[Path]:
     return out
 
 
-def _evaluate(job: tuple[Path, dict, float]) -> tuple[Path, list[FlightScore] | str]:
-    """One bag's flights (run in a worker process): their scores, or why there are none."""
+def _evaluate(job: tuple) -> tuple[Path, list[FlightScore] | str]:
+    """One bag's flights, or those of its vehicles ``only`` (run in a worker process): their
+    scores, or why there are none."""
     from cloe_ros.io.replay import replay_flights
 
-    path, settings, score_from = job
+    path, settings, score_from, only = job
     try:
-        return path, [score_flight(r, score_from) for r in replay_flights(path, settings)]
+        records = replay_flights(path, settings, only=only)
+        return path, [score_flight(r, score_from) for r in records]
     except CloeError as err:
         return path, str(err)
+
+
+def _jobs(bags: list[Path], settings: dict, score_from: float, jobs: int) -> list[tuple]:
+    """The work of a corpus: a bag per job, or, with more worker processes than bags, each
+    vehicle of a bag of several a job of its own (a bag that cannot be listed is one job, which
+    says why)."""
+    from cloe_ros.io.replay import bag_vehicles
+
+    work = []
+    for bag in bags:
+        vehicles = None
+        if worker_count(jobs, 1 << 30) > len(bags):
+            try:
+                vehicles = bag_vehicles(bag)
+            except CloeError:
+                vehicles = None
+        if vehicles is not None and len(vehicles) > 1:
+            work += [(bag, settings, score_from, [v]) for v in vehicles]
+        else:
+            work.append((bag, settings, score_from, None))
+    return work
 
 
 def _row(values: np.ndarray) -> str:
@@ -84,15 +107,16 @@ def run_corpus(args) -> int:
     bags = find_bags(list(args.paths))
     scores: list[FlightScore] = []
     failed: list[tuple[Path, str]] = []
-    work = [(b, settings, args.score_from) for b in bags]
-    with ProcessPoolExecutor(max_workers=worker_count(args.jobs, len(bags))) as pool:
+    work = _jobs(bags, settings, args.score_from, args.jobs)
+    with ProcessPoolExecutor(max_workers=worker_count(args.jobs, len(work))) as pool:
         for done, (path, result) in enumerate(pool.map(_evaluate, work), start=1):
             if isinstance(result, str):
-                failed.append((path, result))
+                if (path, result) not in failed:  # (once per bag, however split)
+                    failed.append((path, result))
             else:
                 scores += result
             if not args.quiet:
-                print(f'[{done}/{len(bags)}] {path.name}', file=sys.stderr, flush=True)
+                print(f'[{done}/{len(work)}] {path.name}', file=sys.stderr, flush=True)
     for _, why in failed:
         print(f'ERROR: {why}', file=sys.stderr)
     if not scores:

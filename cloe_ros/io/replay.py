@@ -81,10 +81,13 @@ class _Collector:
 
 
 def replay_flights(
-    path: str | Path, settings: dict | None = None, horizons: tuple[float, ...] = HORIZONS
-) -> list[FlightRecord]:
+    path: str | Path, settings: dict | None = None, horizons: tuple[float, ...] = HORIZONS,
+    only: list[str] | None = None,
+) -> list[FlightRecord]:  # fmt: skip
     """One :class:`FlightRecord` per vehicle of the bag at ``path`` (named by the bag, with the
-    namespace when there are several vehicles), inferred with the node's ``settings``."""
+    namespace when there are several vehicles), inferred with the node's ``settings``; of the
+    vehicles ``only`` (namespaces as :func:`bag_vehicles` gives them) if given (each vehicle's
+    record is the same whichever vehicles are replayed with it)."""
     path = Path(path)
     engine_config, _ = build_configs(dict(settings or {}))
     if not engine_config.prediction.enabled:
@@ -94,6 +97,9 @@ def replay_flights(
         vehicles = vehicle_namespaces(topics)
         if not vehicles:
             raise BagError(f'{path}: no vehicle with <ns>/{ODOM} and <ns>/{REFERENCE} topics')
+        several = len(vehicles) > 1
+        if only is not None:
+            vehicles = [v for v in vehicles if v in only]
         fleet = Fleet()  # (stepped in batches of one grid step of recording time, as infer)
         engines = {v: fleet.add(VehicleEngine(engine_config, name=v)) for v in vehicles}
         collectors = {v: _Collector(engine_config.prediction.step, horizons) for v in vehicles}
@@ -119,8 +125,13 @@ def replay_flights(
         take(batches.flush())
         for v in vehicles:
             collectors[v].take(engines[v].finish())
-    several = len(vehicles) > 1
     return [
         collectors[v].record(f'{path.name}{v}' if several else path.name, horizons)
         for v in vehicles
     ]
+
+
+def bag_vehicles(path: str | Path) -> list[str]:
+    """The vehicle namespaces of the bag at ``path`` that :func:`replay_flights` replays."""
+    with BagReader(Path(path)) as reader:
+        return vehicle_namespaces({name: info.msgtype for name, info in reader.topics.items()})

@@ -290,3 +290,26 @@ def test_a_horizon_no_flight_reaches_is_nan_not_zero(tmp_path, capsys):
     data = json.loads(text)
     assert data['pooled_coverage'][-1] is None
     assert all(0.0 <= c <= 1.0 for c in data['pooled_coverage'][:-1])
+
+
+def test_evaluate_corpus_splits_the_vehicles_of_a_bag_over_the_workers(tmp_path, capsys):
+    """One bag of two vehicles and two workers: each vehicle a job of its own, with the scores
+    and names of a run in one process."""
+    from bag_fixtures import simulate, write_sim_bag
+
+    from cloe_ros.cli.corpus import _jobs
+
+    corpus = tmp_path / 'corpus'
+    write_sim_bag(corpus / 'two', simulate(duration=15.0), namespaces=('/uav1', '/uav2'))
+    assert [job[3] for job in _jobs([corpus / 'two'], {}, 5.0, 2)] == [['/uav1'], ['/uav2']]
+    assert [job[3] for job in _jobs([corpus / 'two'], {}, 5.0, 1)] == [None]
+    data = []
+    for jobs in ('1', '2'):
+        out = tmp_path / f'corpus{jobs}.json'
+        status = main(['evaluate', 'corpus', str(corpus), '--jobs', jobs, '-q', '--json',
+                       str(out)])  # fmt: skip
+        printed = capsys.readouterr()
+        assert status == 0, printed.err
+        data.append(json.loads(out.read_text()))
+    assert [f['name'] for f in data[1]['flights']] == ['two/uav1', 'two/uav2']
+    assert data[1]['flights'] == data[0]['flights']

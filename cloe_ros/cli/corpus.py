@@ -79,13 +79,14 @@ def _jobs(bags: list[Path], settings: dict, score_from: float, jobs: int) -> lis
     from cloe_ros.io.replay import bag_vehicles
 
     work = []
+    split = worker_count(jobs, 1 << 30) > len(bags)
     for bag in bags:
         vehicles = None
-        if worker_count(jobs, 1 << 30) > len(bags):
+        if split:
             try:
                 vehicles = bag_vehicles(bag)
             except CloeError:
-                vehicles = None
+                pass  # (its job says why)
         if vehicles is not None and len(vehicles) > 1:
             work += [(bag, settings, score_from, [v]) for v in vehicles]
         else:

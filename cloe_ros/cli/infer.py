@@ -97,17 +97,21 @@ def infer_bag(
     copy_inputs: bool = True,
     compression: str = 'zstd',
     progress=None,
+    jobs: int = 1,
 ) -> InferResult:
     """Run the engine of every vehicle over ``bag`` (of ``vehicles``: default all) and write the
-    outputs to ``output``, in this process."""
+    outputs to ``output``: in this process, or with the vehicles in ``jobs`` groups (0: one per
+    core; never more groups than vehicles), each run in a process of its own that sends its
+    outputs here, where they are written beside the copies of the inputs (:func:`_split`)."""
     engine_config, output_config = build_configs(settings)
     start = time.monotonic()
     with BagReader(bag) as reader:
         found = _vehicles(reader, bag, vehicles)
         if output.exists():
             raise CliError(f'{output} exists already, not overwriting.')
+        count = worker_count(jobs, len(found))
         copies = _copies(reader, found) if copy_inputs else []
-        engines, encoders = _engines(found, engine_config, output_config)
+        encoders = {v: _encoder(v, engine_config, output_config) for v in found}
         written: Counter = Counter()
         writer = BagWriter(output, compression=compression)
         try:
@@ -118,8 +122,12 @@ def infer_bag(
                     writer.write(topic, stamp, data)
                     written[topic] += 1
 
-                stats = _run(reader, bag, engines, encoders, engine_config, write, copies,
-                             progress)  # fmt: skip
+                if count == 1:
+                    engines = _engines(found, engine_config)
+                    stats = _run(reader, bag, engines, encoders, engine_config, write, copies,
+                                 progress)  # fmt: skip
+                else:
+                    stats = _split(reader, bag, settings, found, count, write, copies, progress)
                 if len(stats['unusable']) == len(found):
                     raise CliError('; '.join(stats['unusable'].values()) + '.')
         except BaseException as err:
@@ -131,115 +139,79 @@ def infer_bag(
                        written=dict(written), **stats)  # fmt: skip
 
 
-def infer_split(
-    bag: Path, output: Path, settings: dict, jobs: int, vehicles: list[str] | None = None,
-    copy_inputs: bool = True, compression: str = 'zstd', progress=None,
-) -> InferResult:  # fmt: skip
-    """:func:`infer_bag` with the vehicles in ``jobs`` groups (0: one per core; never more
-    groups than vehicles), each run in a process of its own that sends its outputs here, where
-    they are written into ``output`` beside the copies of the inputs, as one run writes them.
-    One group: :func:`infer_bag` itself."""
-    start = time.monotonic()
-    with BagReader(bag) as reader:
-        found = _vehicles(reader, bag, vehicles)
-        count = worker_count(jobs, len(found))
-        if count > 1:
-            return _split(reader, bag, output, settings, found, count, copy_inputs, compression,
-                          progress, start)  # fmt: skip
-    return infer_bag(bag, output, settings, vehicles, copy_inputs, compression, progress)
-
-
-def _split(reader, bag, output, settings, found, count, copy_inputs, compression, progress,
-           start) -> InferResult:  # fmt: skip
-    """:func:`infer_split` of ``count`` > 1 groups, ``reader`` open on ``bag``."""
-    engine_config, output_config = build_configs(settings)
-    if output.exists():
-        raise CliError(f'{output} exists already, not overwriting.')
+def _split(reader, bag, settings, found, count, write, copies, progress) -> dict:
+    """:func:`_run` of the vehicles ``found`` in ``count`` > 1 groups, each in a forked worker
+    (:func:`_run_group`) whose outputs go to ``write`` here, while this process hands it the
+    messages of the topics ``copies``; the statistics of all the groups, in ``found``'s order."""
     groups = [found[len(found) * i // count : len(found) * (i + 1) // count]
               for i in range(count)]  # fmt: skip
-    copies = _copies(reader, found) if copy_inputs else []
-    encoders = {v: _encoder(v, engine_config, output_config) for v in found}
     # forked workers inherit the engine's modules, loaded kernels and the settings checked
     ctx = multiprocessing.get_context('fork')
     queue = ctx.Queue(maxsize=4 * count)
     workers = [ctx.Process(target=_run_group, args=(bag, settings, group, queue, i), daemon=True)
                for i, group in enumerate(groups)]  # fmt: skip
-    written: Counter = Counter()
     done: dict[int, dict] = {}
     fractions = [0.0] * count
-    writer = BagWriter(output, compression=compression)
+
+    def take(wait: bool) -> None:
+        """What the workers sent, written; until they are all done if ``wait``."""
+        while len(done) < count:
+            try:
+                index, kind, payload = (queue.get(timeout=0.5) if wait
+                                        else queue.get_nowait())  # fmt: skip
+            except Empty:
+                if not wait:
+                    return
+                for i, w in enumerate(workers):
+                    if i not in done and w.exitcode is not None:
+                        names = ', '.join(v or '/' for v in groups[i])
+                        raise CliError(f'{bag}: the process inferring {names} ended '
+                                       f'(exit status {w.exitcode})') from None
+                continue
+            if kind == 'out':
+                for topic, stamp, data in payload:
+                    write(topic, stamp, data)
+            elif kind == 'progress':
+                fractions[index] = payload
+                if progress is not None:
+                    progress('infer', min(fractions))
+            elif kind == 'done':
+                done[index] = payload
+            else:
+                raise CliError(payload)
+
     try:
-        with writer:
-            _add_topics(writer, reader, copies, encoders, engine_config, output_config)
-
-            def write(topic, stamp, data):
-                writer.write(topic, stamp, data)
-                written[topic] += 1
-
-            def take(wait: bool) -> None:
-                """What the workers sent, written; until they are all done if ``wait``."""
-                while len(done) < count:
-                    try:
-                        index, kind, payload = (queue.get(timeout=0.5) if wait
-                                                else queue.get_nowait())  # fmt: skip
-                    except Empty:
-                        if not wait:
-                            return
-                        for i, w in enumerate(workers):
-                            if i not in done and w.exitcode is not None:
-                                names = ', '.join(v or '/' for v in groups[i])
-                                raise CliError(f'{bag}: the process inferring {names} ended '
-                                               f'(exit status {w.exitcode})') from None
-                        continue
-                    if kind == 'out':
-                        for topic, stamp, data in payload:
-                            write(topic, stamp, data)
-                    elif kind == 'progress':
-                        fractions[index] = payload
-                        if progress is not None:
-                            progress('infer', min(fractions))
-                    elif kind == 'done':
-                        done[index] = payload
-                    else:
-                        raise CliError(payload)
-
-            for w in workers:
-                w.start()
-            for n, (topic, log_ns, raw) in enumerate(reader.messages(copies)):
-                write(topic, log_ns, raw)
-                if n % 200 == 0:
-                    take(wait=False)
-            take(wait=True)
-            stats = {key: {v: x for i in range(count) for v, x in done[i][key].items()}
-                     for key in done[0]}  # fmt: skip
-            if len(stats['unusable']) == len(found):
-                raise CliError('; '.join(stats['unusable'][v] for v in found) + '.')
-    except BaseException as err:
+        for w in workers:
+            w.start()
+        for n, (topic, log_ns, raw) in enumerate(reader.messages(copies)):
+            write(topic, log_ns, raw)
+            if n % 200 == 0:
+                take(wait=False)
+        take(wait=True)
+    except BaseException:
         for w in workers:
             if w.is_alive():
                 w.kill()
-        raise _failed(err, writer, output) from err
+        raise
     finally:
         for w in workers:
             if w.pid is not None:
                 w.join()
         queue.close()
-    if progress is not None:
-        progress('infer', 1.0)
-    stats = {key: {v: stats[key][v] for v in found if v in stats[key]} for key in stats}
-    return InferResult(vehicles=found, duration_s=(reader.end_ns - reader.start_ns) / NS,
-                       wall_s=time.monotonic() - start, written=dict(written),
-                       **stats)  # fmt: skip
+    # (the groups are consecutive slices of found: in their order, its order)
+    return {key: {v: x for i in range(count) for v, x in done[i][key].items()}
+            for key in done[0]}  # fmt: skip
 
 
 def _run_group(bag: Path, settings: dict, group: list[str], queue, index: int) -> None:
-    """A worker of :func:`infer_split`: the engines of ``group`` over ``bag``; puts on
+    """A worker of :func:`_split`: the engines of ``group`` over ``bag``; puts on
     ``queue`` ``(index, kind, payload)``: ``'out'`` and a list of ``(topic, stamp, cdr)``,
     ``'progress'`` and a fraction, then ``'done'`` and the run's statistics, or ``'error'`` and
     why."""
     try:
         engine_config, output_config = build_configs(settings)
-        engines, encoders = _engines(group, engine_config, output_config)
+        engines = _engines(group, engine_config)
+        encoders = {v: _encoder(v, engine_config, output_config) for v in group}
         out: list = []
 
         def write(topic, stamp, data):
@@ -266,12 +238,11 @@ def _encoder(vehicle: str, engine_config, output_config) -> OutputEncoder:
     return OutputEncoder(output_config, vehicle or '/', engine_config.prediction.enabled)
 
 
-def _engines(found: list[str], engine_config, output_config) -> tuple[dict, dict]:
+def _engines(found: list[str], engine_config) -> dict[str, VehicleEngine]:
     """The engines of the vehicles ``found``, as one fleet (their estimators step together; the
-    same estimates as each alone), and their output encoders."""
+    same estimates as each alone)."""
     fleet = Fleet()
-    engines = {v: fleet.add(VehicleEngine(engine_config, name=v)) for v in found}
-    return engines, {v: _encoder(v, engine_config, output_config) for v in found}
+    return {v: fleet.add(VehicleEngine(engine_config, name=v)) for v in found}
 
 
 def _copies(reader: BagReader, found: list[str]) -> list[str]:
@@ -445,9 +416,9 @@ def run(args: argparse.Namespace) -> int:
         return _run_many(args, settings)
     bar = ProgressBar(enabled=not args.quiet)
     try:
-        result = infer_split(
-            args.bag[0], args.output, settings, args.jobs, args.vehicles, not args.no_inputs,
-            args.compression, bar,
+        result = infer_bag(
+            args.bag[0], args.output, settings, args.vehicles, not args.no_inputs,
+            args.compression, bar, args.jobs,
         )  # fmt: skip
     except BagError as err:
         raise CliError(str(err)) from err

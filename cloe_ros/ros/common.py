@@ -395,17 +395,24 @@ def vehicle_topic(vehicle: str, name: str) -> str:
     return f'{vehicle}/{name}' if vehicle else name
 
 
+def resolved_namespace(node, vehicle: str) -> str:
+    """The absolute namespace of ``vehicle`` (an entry of ``vehicles``) in ``node``'s namespace,
+    '/' for the root: where its topics are."""
+    odom = node.resolve_topic_name(vehicle_topic(vehicle, 'odom'), only_expand=True)
+    return odom[: -len('/odom')] or '/'
+
+
 def check_same_namespaces(node, vehicles: Iterable[str]) -> None:
     """Refuse two ``vehicles`` (checked by :func:`check_vehicles`) that name one namespace
     once resolved against ``node``'s (``/uav1`` and ``uav1`` in the root namespace): the vehicle
     would be simulated, or inferred and published, twice."""
     seen: dict[str, str] = {}
     for v in vehicles:
-        ns = node.resolve_topic_name(vehicle_topic(v, 'odom'), only_expand=True)[: -len('/odom')]
+        ns = resolved_namespace(node, v)
         if ns in seen:
             raise ParameterError(
-                f'vehicles {seen[ns]!r} and {v!r} are the same namespace, {ns or "/"}: list it '
-                'once', 'vehicles')  # fmt: skip
+                f'vehicles {seen[ns]!r} and {v!r} are the same namespace, {ns}: list it once',
+                'vehicles')  # fmt: skip
         seen[ns] = v
 
 

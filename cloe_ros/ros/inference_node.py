@@ -56,6 +56,7 @@ from cloe_ros.ros.common import (
     destroyed_if_init_fails,
     qos,
     refuse,
+    resolved_namespace,
     run_node,
     vehicle_topic,
 )
@@ -375,8 +376,7 @@ class InferenceNode(Node):
         """The vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics
         reports, how a report of the recording finds which algorithm made each output, and what
         the shards hash."""
-        odom = self.resolve_topic_name(vehicle_topic(vehicle, 'odom'), only_expand=True)
-        return odom[: -len('/odom')] or '/'
+        return resolved_namespace(self, vehicle)
 
     def _ours(self, namespace: str) -> bool:
         """Whether the vehicle of ``namespace`` belongs to this node's shard."""

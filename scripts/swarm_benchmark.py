@@ -7,7 +7,8 @@ For each N: one process publishes N vehicles' ``/uavK/odom`` at 100 Hz and ``/ua
 vehicles at once, so that the load generator takes little of the machine). It is received first
 by a do-nothing
 subscriber (raw subscriptions on rclpy's EventsExecutor: the floor of receiving them in Python),
-then by one ``cloe_inference`` node (the installed package, cloe_iv, ``vehicles`` listing them).
+then by one ``cloe_inference`` node (this checkout's package, cloe_iv, ``vehicles`` listing them;
+``--param NAME:=VALUE``, repeatable, sets another of its parameters).
 Printed per run: messages received of those sent, CPU time of the receiving process per message
 (from /proc), and for the node the share of the odometry that became a published ``cloe/state``
 and the latency of the states of the first vehicle (wall clock at reception minus stamp, p50 and
@@ -240,7 +241,8 @@ def listen(n: int, watch: str) -> None:
 
 def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None = None,
         qos_depth: int | None = None, shards: int = 1,
-        qos_reliability: str | None = None) -> dict[str, float]:  # fmt: skip
+        qos_reliability: str | None = None,
+        params: list[str] = ()) -> dict[str, float]:  # fmt: skip
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     env.setdefault('ROS_DOMAIN_ID', '91')
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -268,7 +270,8 @@ def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None =
                  'reference_timeout:=5.0', *shard,
                  *(['-p', f'batch_period:={batch}'] if batch is not None else []),
                  *(['-p', f'qos_depth:={qos_depth}'] if qos_depth is not None else []),
-                 *(['-p', f'qos_reliability:={qos_reliability}'] if qos_reliability else [])],
+                 *(['-p', f'qos_reliability:={qos_reliability}'] if qos_reliability else []),
+                 *(word for param in params for word in ('-p', param))],
                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     receivers = [p for name, p in procs.items() if name.startswith('rx')]
     time.sleep(3.0)  # (discovery)
@@ -362,6 +365,9 @@ def main() -> int:
     parser.add_argument('--shards', type=int, default=1,
                         help='split the vehicles over this many inference nodes (shard_index / '
                              'shard_count), each its own process; CPU is their sum')  # fmt: skip
+    parser.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
+                        help="another of the node's parameters (repeatable), e.g. "
+                             "prediction_rate:=1.0")  # fmt: skip
     parser.add_argument('--relay', action='store_true',
                         help='also run the relay (receive, publish one state per odometry, no '
                              'estimation) under the same load: what an engine that costs '
@@ -390,7 +396,7 @@ def main() -> int:
                       f"{relay_us / floor_us:.1f}x, {1e3 * r['p50']:.0f} / "
                       f"{1e3 * r['p99']:.0f} ms | |", flush=True)  # fmt: skip
             c = run(n, args.duration, 'node', Path(tmp), args.batch_period, args.qos_depth,
-                    args.shards, args.qos_reliability)
+                    args.shards, args.qos_reliability, args.param)
             node_us = 1e6 * c['cpu_s'] / c['sent']
             print(f"| {n} | {f['received']} of {f['sent']}, {floor_us:.0f} us | "
                   f"{c['states']} of {odom} ({100 * c['states'] / odom:.1f} %), {node_us:.0f} us, "

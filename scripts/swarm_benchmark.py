@@ -4,24 +4,24 @@
 
 For each N: one process publishes N vehicles' ``/uavK/odom`` at 100 Hz and ``/uavK/reference`` at
 10 Hz (a circle, raw CDR, stamped with the wall clock; each tick's messages computed for all
-vehicles at once, so that the load generator takes little of the machine). It is received first
-by a do-nothing
-subscriber (raw subscriptions on rclpy's EventsExecutor: the floor of receiving them in Python),
-then by one ``cloe_inference`` node (this checkout's package, cloe_iv, ``vehicles`` listing them;
-``--param NAME:=VALUE``, repeatable, sets another of its parameters).
-Printed per run: messages received of those sent, CPU time of the receiving process per message
-(from /proc), and for the node the share of the odometry that became a published ``cloe/state``
-and the latency of the states of the first vehicle (wall clock at reception minus stamp, p50 and
-p99), and what the node says of its load in /diagnostics: how many reports it published, the
-largest ``busy`` (the share of wall time in its callbacks; WARN from 0.8) and the largest
-``late_s`` (how long after its deadline its steady timer ran; WARN from 0.5 s). Speeds depend
-on the machine and its load: compare the node's column with the floor's in the same run
-(EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits
-the vehicles over K nodes (``shard_index`` / ``shard_count``, each its own process, as across
-hosts): the node's columns are then the K nodes together (CPU summed, the largest ``busy`` and
-``late_s`` of any). ``--relay`` also runs, under the same load, a node that only receives and
-publishes each odometry message back as the vehicle's ``cloe/state`` (no estimation): what an
-inference node whose engine cost nothing would deliver, and its CPU per message.
+vehicles at once, so that the load generator takes little of the machine). It is received first by
+a do-nothing subscriber (raw subscriptions on rclpy's EventsExecutor: the floor of receiving them
+in Python), then by one ``cloe_inference`` node (this checkout's package, cloe_iv, ``vehicles``
+listing them; ``--param NAME:=VALUE``, repeatable, sets another of its parameters). Printed per
+run: messages received of those sent, CPU time of the receiving process per message (from /proc),
+and for the node the share of the odometry that became a published ``cloe/state`` and the latency
+of the states of every vehicle (wall clock at reception minus stamp, p50 and p99, over all the
+states received; until 2026-12-06 it was the first vehicle's alone, which the node steps and
+publishes first of a batch), and what the node says of its load in /diagnostics: how many reports
+it published, the largest ``busy`` (the share of wall time in its callbacks; WARN from 0.8) and the
+largest ``late_s`` (how long after its deadline its steady timer ran; WARN from 0.5 s). Speeds
+depend on the machine and its load: compare the node's column with the floor's in the same run
+(EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits the
+vehicles over K nodes (``shard_index`` / ``shard_count``, each its own process, as across hosts):
+the node's columns are then the K nodes together (CPU summed, the largest ``busy`` and ``late_s``
+of any). ``--relay`` also runs, under the same load, a node that only receives and publishes each
+odometry message back as the vehicle's ``cloe/state`` (no estimation): what an inference node whose
+engine cost nothing would deliver, and its CPU per message.
 
     .venv/bin/python scripts/swarm_benchmark.py --offline bags/position [--repeat 3]
 
@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import struct
 import subprocess
 import sys
 import time
@@ -185,15 +186,14 @@ def relay(n: int, duration: float) -> None:
 
 
 def listen(n: int, watch: str) -> None:
-    """Counts the node's states of every vehicle; latency of the first vehicle's; the node's
-    own ``busy`` share from its /diagnostics."""
+    """Counts the node's states of every vehicle and their latency (reception minus stamp, every
+    vehicle's); the node's own ``busy`` share from its /diagnostics."""
     import numpy as np
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from rclpy.experimental import EventsExecutor
 
-    from cloe_ros.io import cdr
     from cloe_ros.io.messages import decode_diagnostics
     from cloe_ros.ros.common import qos, spin_while
 
@@ -202,12 +202,13 @@ def listen(n: int, watch: str) -> None:
     count = [0]
     lat: list[float] = []
 
-    def first(raw: bytes) -> None:
-        count[0] += 1
-        lat.append((time.time_ns() - cdr.decode_odometry(raw).stamp_ns) / 1e9)
+    stamp = struct.Struct('<iI')  # header.stamp, after the 4-byte CDR header
 
-    def other(_raw: bytes) -> None:
+    def state(raw: bytes) -> None:
+        now = time.time_ns()
         count[0] += 1
+        sec, nanosec = stamp.unpack_from(raw, 4)
+        lat.append((now - (sec * 1_000_000_000 + nanosec)) / 1e9)
 
     busy: list[float] = []
     late: list[float] = []
@@ -223,8 +224,8 @@ def listen(n: int, watch: str) -> None:
                              raw=True)  # fmt: skip
 
     for k in range(n):
-        node.create_subscription(Odometry, f'/uav{k}/cloe/state', first if k == 0 else other,
-                                 qos(depth=1000), raw=True)  # fmt: skip
+        node.create_subscription(Odometry, f'/uav{k}/cloe/state', state, qos(depth=1000),
+                                 raw=True)  # fmt: skip
     executor = EventsExecutor()
     executor.add_node(node)
     spin_while(executor, lambda: not Path(watch).exists(), period=0.1)

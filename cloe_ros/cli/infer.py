@@ -5,9 +5,10 @@ core by default), each into ``DIR/<its name>``. A bag that fails is reported and
 still written; the exit status is then 1.
 
 One bag of several vehicles is split the same way: its vehicles in ``N`` groups, each group
-inferred in a process of its own into a part, and the parts merged into ``OUT_BAG`` in log-time
-order. Each vehicle's outputs are those of a run over all of them in one process (an engine's
-estimates do not depend on the vehicles it is batched with)."""
+inferred in a process of its own that sends its encoded outputs to this one, which writes them
+into ``OUT_BAG`` beside the copies of the inputs (:func:`_split`). Each vehicle's outputs are
+those of a run over all of them in one process (an engine's estimates do not depend on the
+vehicles it is batched with)."""
 
 from __future__ import annotations
 

@@ -240,10 +240,10 @@ def listen(n: int, watch: str) -> None:
     rclpy.shutdown()
 
 
-def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None = None,
-        qos_depth: int | None = None, shards: int = 1,
-        qos_reliability: str | None = None,
-        params: list[str] = ()) -> dict[str, float]:  # fmt: skip
+def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (),
+        shards: int = 1) -> dict[str, float]:  # fmt: skip
+    """One load of ``n`` vehicles received by ``receiver`` (floor, relay or node; the node with
+    the parameters ``params``, ``NAME:=VALUE`` each, in ``shards`` processes)."""
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     env.setdefault('ROS_DOMAIN_ID', '91')
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -269,9 +269,6 @@ def run(n: int, duration: float, receiver: str, tmp: Path, batch: float | None =
                 [sys.executable, '-m', 'cloe_ros.ros.inference_node', '--ros-args', '-p',
                  f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p',
                  'reference_timeout:=5.0', *shard,
-                 *(['-p', f'batch_period:={batch}'] if batch is not None else []),
-                 *(['-p', f'qos_depth:={qos_depth}'] if qos_depth is not None else []),
-                 *(['-p', f'qos_reliability:={qos_reliability}'] if qos_reliability else []),
                  *(word for param in params for word in ('-p', param))],
                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
     receivers = [p for name, p in procs.items() if name.startswith('rx')]
@@ -379,6 +376,10 @@ def main() -> int:
         return 0
     import tempfile
 
+    # the node's parameters: those with options of their own, then --param's
+    params = [f'{name}:={value}' for name, value in (
+        ('batch_period', args.batch_period), ('qos_depth', args.qos_depth),
+        ('qos_reliability', args.qos_reliability)) if value is not None] + args.param  # fmt: skip
     print('| vehicles | do-nothing subscriber: received, CPU per message | cloe_inference: '
           'states of odometry, CPU per message, ratio to the floor, latency p50 / p99 | '
           "the node's /diagnostics: reports, busy (max), late_s (max) |")
@@ -396,8 +397,7 @@ def main() -> int:
                       f"({100 * r['states'] / odom:.1f} %), {relay_us:.0f} us, "
                       f"{relay_us / floor_us:.1f}x, {1e3 * r['p50']:.0f} / "
                       f"{1e3 * r['p99']:.0f} ms | |", flush=True)  # fmt: skip
-            c = run(n, args.duration, 'node', Path(tmp), args.batch_period, args.qos_depth,
-                    args.shards, args.qos_reliability, args.param)
+            c = run(n, args.duration, 'node', Path(tmp), params, args.shards)
             node_us = 1e6 * c['cpu_s'] / c['sent']
             print(f"| {n} | {f['received']} of {f['sent']}, {floor_us:.0f} us | "
                   f"{c['states']} of {odom} ({100 * c['states'] / odom:.1f} %), {node_us:.0f} us, "

@@ -342,6 +342,9 @@ def _vehicles(reader: BagReader, bag: Path, vehicles: list[str] | None) -> list[
     found = check_inputs(topics, bag)
     if vehicles:
         wanted = [v.rstrip('/') for v in vehicles]
+        twice = sorted({v or '/' for v in wanted if wanted.count(v) > 1})
+        if twice:  # (each vehicle's outputs are written once: refused, as the node does)
+            raise CliError(f'--vehicles names {", ".join(twice)} more than once')
         missing = [v for v in wanted if v not in found]
         if missing:
             raise CliError(

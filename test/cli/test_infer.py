@@ -285,6 +285,14 @@ def test_unknown_vehicle(sim_bag, tmp_path, capsys):
     assert not (tmp_path / 'out').exists()
 
 
+def test_a_vehicle_named_twice(sim_bag, tmp_path, capsys):
+    """``/`` and ``/`` (or ``/uav1`` and ``/uav1/``) are one vehicle: refused, as the node refuses
+    it, rather than two groups of a split run each writing its outputs."""
+    assert_error(capsys, '--vehicles names / more than once',
+                 sim_bag, '-o', tmp_path / 'out', '-j', '2', '--vehicles', '/', '/')  # fmt: skip
+    assert not (tmp_path / 'out').exists()
+
+
 def test_config_with_an_unknown_key(sim_bag, tmp_path, capsys):
     config = tmp_path / 'inference.yaml'
     config.write_text(

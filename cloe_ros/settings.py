@@ -320,8 +320,9 @@ SETTINGS: dict[str, Setting] = {s.name: s for s in (
             'vehicle at each of its messages, alone', range=(0.0, 0.1), **_RO),
     Setting('qos_reliability', 'reliable', 'QoS reliability of the subscriptions: reliable or '
             'best_effort', choices=('reliable', 'best_effort'), **_RO),
-    Setting('qos_depth', 1000, 'QoS history depth of the subscriptions (10 s of 100 Hz odometry: '
-            'a node starved of CPU for a moment loses nothing)', range=(1, 100000), **_RO),
+    Setting('qos_depth', 1000, 'QoS history depth of the subscriptions and of the output '
+            'publishers (10 s of 100 Hz odometry: a node starved of CPU for a moment loses '
+            'nothing)', range=(1, 100000), **_RO),
 )}  # fmt: skip
 
 

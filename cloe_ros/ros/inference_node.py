@@ -199,6 +199,8 @@ class InferenceNode(Node):
         self._missing_since: dict[str, float] = {}
         self._warned_missing: set[str] = set()
         self._discovered: set[str] = set()
+        # the vehicles whose cloe/state something else publishes too (another node's shard)
+        self._doubled: set[str] = set()
         check_same_namespaces(self, self.listed)
         for v in self.listed or ([] if self.discover else ['']):
             if self._ours(self._namespace(v)):  # (a listed vehicle of another shard: not ours)
@@ -227,7 +229,8 @@ class InferenceNode(Node):
         self._last_rejected: dict[str, str] = {}  # per vehicle: the last rejection, in words
         self._last_estimate: dict[str, object] = {}
         self._last_prediction_note: dict[str, str] = {}
-        names = ', '.join(self.vehicle_ns[v] for v in self.vehicles) or 'no vehicle yet'
+        names = ', '.join(self.vehicle_ns[v] for v in self.vehicles) or (
+            'no vehicle yet' if self.discover or not self.listed else 'no vehicle')
         notes = []
         if self.shard_count > 1:
             notes.append(
@@ -241,6 +244,18 @@ class InferenceNode(Node):
             f'ready: {self.engine_config.estimator.algorithm} at {self.engine_config.rate:g} Hz '
             f'for {names}' + (f' ({"; ".join(notes)})' if notes else '')
         )
+        if self.idle:
+            self.get_logger().warning(
+                f'none of the {len(self.listed)} listed vehicles belongs to shard '
+                f'{self.shard_index} of {self.shard_count}: this node infers nothing (each '
+                'vehicle goes to shard crc32(namespace) mod shard_count; fewer shards, or '
+                'discover:=true, which also takes vehicles that appear later)'
+            )
+
+    @property
+    def idle(self) -> bool:
+        """A shard that can never infer a vehicle: a list, no discovery, none of it ours."""
+        return bool(self.listed) and not self.discover and not self.vehicles
 
     def _latch_parameter_labels(self, vehicle: str) -> None:
         """Publish ``<out>/parameter_labels`` once, latched (reliable, transient local, depth 1),
@@ -405,6 +420,7 @@ class InferenceNode(Node):
                 shard = f' (shard {self.shard_index})' if self.shard_count > 1 else ''
                 self.get_logger().info(f'discovered {ns}: inferring it{shard}')
         for v in self.vehicles:
+            self._check_doubled(v)
             ns = self.vehicle_ns[v]
             missing = self._missing[v] = self._missing_inputs(ns)
             if not missing:
@@ -418,6 +434,23 @@ class InferenceNode(Node):
                 continue
             self._warned_missing.add(v)
             self.get_logger().warning(self._missing_warning(v, missing, now - since, topics))
+
+    def _check_doubled(self, v: str) -> None:
+        """Warn (once, and in /diagnostics) while something else publishes vehicle ``v``'s
+        ``cloe/state`` too: another inference node whose shard covers it (two nodes given the
+        same ``shard_index``, or different ``shard_count``), or a bag replayed with its outputs."""
+        topic = self.encoders[v].state_topic
+        others = self.count_publishers(topic) - 1
+        if others > 0 and v not in self._doubled:
+            self._doubled.add(v)
+            self.get_logger().warning(
+                f'{self.vehicle_ns[v]}: {others} other publisher(s) of {topic}: is another '
+                'inference node inferring this vehicle too? (the nodes of one swarm need the '
+                'same shard_count and each its own shard_index)'
+            )
+        elif others <= 0 and v in self._doubled:
+            self._doubled.discard(v)
+            self.get_logger().info(f'{self.vehicle_ns[v]}: this node alone publishes {topic}')
 
     def _missing_inputs(self, namespace: str) -> list[str]:
         """The inputs of the vehicle of ``namespace`` that nothing publishes."""
@@ -441,7 +474,9 @@ class InferenceNode(Node):
             )
         return text + (
             f'; is {ns} the namespace of a vehicle that flies? (vehicles: '
-            f'[{", ".join(self.listed)}]; discover:=true takes the namespaces that publish)'
+            f'[{", ".join(self.listed)}]'
+            + ('' if self.discover else '; discover:=true takes the namespaces that publish')
+            + ')'
         )
 
     # -------------------------------------------------------------------------- callbacks
@@ -683,8 +718,10 @@ class InferenceNode(Node):
 
     def node_status(self) -> Status:
         """The node's own status: which vehicles it infers (its shard), those without
-        publishers for ``publisher_timeout``, and its load over the last diagnostics period
-        (WARN from ``BUSY_WARN`` or ``LATE_WARN``: at its limit, or behind its inputs)."""
+        publishers for ``publisher_timeout``, those whose ``cloe/state`` another node publishes
+        too, and its load over the last diagnostics period. WARN for any of those, for a shard
+        with none of the listed vehicles and no discovery (:attr:`idle`), and from ``BUSY_WARN``
+        or ``LATE_WARN``: at its limit, or behind its inputs."""
         now = time.monotonic()
         silent = [self.vehicle_ns[v] for v in self.vehicles if self._missing.get(v)
                   and now - self._missing_since.get(v, now) >= self.publisher_timeout]  # fmt: skip
@@ -696,6 +733,11 @@ class InferenceNode(Node):
             message += ', discovering'
         if silent:
             message += '; without publishers: ' + ', '.join(silent)
+        doubled = [self.vehicle_ns[v] for v in self.vehicles if v in self._doubled]
+        if doubled:
+            message += '; cloe/state also published by another node: ' + ', '.join(doubled)
+        if self.idle:
+            message += '; none of the listed vehicles is in this shard'
         busy, late = self._load
         overload = self._overload()
         if overload:
@@ -707,10 +749,11 @@ class InferenceNode(Node):
             ('shard_index', str(self.shard_index)),
             ('shard_count', str(self.shard_count)),
             ('without_publishers', ' '.join(silent)),
+            ('published_elsewhere_too', ' '.join(doubled)),
             ('busy', f'{busy:.3f}'),
             ('late_s', f'{late:.3f}'),
         )
-        level = messages.WARN if silent or overload else messages.OK
+        level = messages.WARN if silent or doubled or self.idle or overload else messages.OK
         return Status(level, self.get_name(), message, self.get_fully_qualified_name(), values)
 
     def _overload(self) -> str:

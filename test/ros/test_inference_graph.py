@@ -244,6 +244,57 @@ def test_listed_vehicles_outside_the_shard_are_left_to_the_others(context):
             n.destroy_node()
 
 
+def test_a_shard_with_none_of_the_listed_vehicles_says_it_infers_nothing(context, capfd):
+    """/uav1 and /uav2 both belong to shard 0 of 3: shard 1, with no discovery to take up a
+    vehicle later, would infer nothing ever. It starts (the list may be the whole swarm's, given
+    to every node) but warns, and its status is WARN."""
+    inf = _inference(context, vehicles=['/uav1', '/uav2'], shard_index=1, shard_count=3)
+    try:
+        assert inf.vehicles == [] and inf.idle
+        status = inf.node_status()
+        assert status.level == 1, status.message
+        assert 'none of the listed vehicles is in this shard' in status.message
+        err = capfd.readouterr().err
+        assert 'for no vehicle (shard 1 of 3: 0 of the 2 listed vehicles)' in err
+        assert 'none of the 2 listed vehicles belongs to shard 1 of 3' in err
+    finally:
+        inf.destroy_node()
+    discovering = _inference(context, vehicles=['/uav1'], shard_index=1, shard_count=3,
+                             discover=True)  # fmt: skip
+    try:  # with discovery a vehicle of its shard may still appear: no warning
+        assert not discovering.idle and discovering.node_status().level == 0
+    finally:
+        discovering.destroy_node()
+
+
+def test_two_nodes_inferring_one_vehicle_are_warned_of(context, capfd):
+    """Two nodes given the same shard (here: no shards at all) both publish /uav1/cloe/state:
+    each says so in its log and in /diagnostics, and stops saying it when the other leaves."""
+    first = _inference(context, vehicles=['/uav1'], discovery_period=0.1)
+    second = _inference(context, vehicles=['/uav1'], discovery_period=0.1,
+                        cli_args=['--ros-args', '-r', '__node:=cloe_inference_copy'])  # fmt: skip
+    ex = _executor(context, first, second)
+    try:
+        def doubled(node) -> str:
+            return dict(node.node_status().values)['published_elsewhere_too']
+
+        assert spin_until(ex, lambda: doubled(first) == doubled(second) == '/uav1', 30)
+        assert first.node_status().level == 1
+        assert 'cloe/state also published by another node: /uav1' in first.node_status().message
+        spin_until(ex, lambda: False, 0.3)  # (let the log lines reach stderr)
+        err = capfd.readouterr().err
+        assert err.count('/uav1: 1 other publisher(s) of /uav1/cloe/state') == 2, err
+        ex.remove_node(second)
+        second.destroy_node()
+        second = None
+        assert spin_until(ex, lambda: doubled(first) == '', 30)
+    finally:
+        ex.shutdown()
+        for n in (first, second):
+            if n is not None:
+                n.destroy_node()
+
+
 def test_a_listed_vehicle_without_publishers_is_warned_of(context, capfd):
     """/uav1 has publishers, /uav9 has none: after publisher_timeout, /uav9 is WARN in
     /diagnostics and the log says what nothing publishes."""

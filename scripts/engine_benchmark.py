@@ -20,9 +20,13 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # (this checkout's package)
 
 from cloe_ros.core.algorithms import ALGORITHMS, make_estimator
 from cloe_ros.core.estimator import EstimatorConfig

@@ -41,7 +41,9 @@ def main() -> int:
     parser.add_argument('--vehicles', type=int, default=10)
     parser.add_argument('--batch', type=int, choices=(0, 1), default=1,
                         help='1: one batch per odometry tick; 0: each vehicle alone')
-    parser.add_argument('--inputs', type=int, default=3000, help='inputs per vehicle')
+    parser.add_argument('--inputs', type=int, default=3000,
+                        help='inputs per vehicle (odometry and references; the simulated flight '
+                             'holds 3002)')  # fmt: skip
     parser.add_argument('--kernels', action='store_true',
                         help='also the time of the compiled kernels per odometry message')
     args = parser.parse_args()
@@ -49,8 +51,12 @@ def main() -> int:
     spent = time_kernels() if args.kernels else None
     engine_config, output_config = build_configs(dict(DEFAULTS))
     odoms, refs = flight_messages(simulated_flight())
+    inputs = in_time_order(odoms, refs)
+    if args.inputs > len(inputs):
+        parser.error(f'--inputs: the simulated flight holds {len(inputs)} inputs per vehicle, '
+                     f'not {args.inputs}')  # fmt: skip
     raws = [(kind, cdr.encode_odometry(m) if kind == 'odom' else cdr.encode_pose_stamped(m))
-            for kind, m in in_time_order(odoms, refs)[: args.inputs]]  # fmt: skip
+            for kind, m in inputs[: args.inputs]]  # fmt: skip
     names = [f'/uav{i}' for i in range(args.vehicles)]
     fleet = Fleet(pooled=bool(args.batch))
     encoders = {}

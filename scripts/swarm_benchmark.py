@@ -7,11 +7,13 @@ For each N: one process publishes N vehicles' ``/uavK/odom`` at 100 Hz and ``/ua
 vehicles at once, so that the load generator takes little of the machine). It is received first by
 a do-nothing subscriber (raw subscriptions on rclpy's EventsExecutor: the floor of receiving them
 in Python), then by one ``cloe_inference`` node (this checkout's package, cloe_iv, ``vehicles``
-listing them; ``--param NAME:=VALUE``, repeatable, sets another of its parameters). Printed per
-run: messages received of those sent, CPU time of the receiving process per message (from /proc),
-and for the node the share of the odometry that became a published ``cloe/state`` and the latency
-of the states of every vehicle (wall clock at reception minus stamp, p50 and p99, over all the
-states received; until 2026-12-06 it was the first vehicle's alone, which the node steps and
+listing them, ``reference_timeout`` 5 s instead of the default 0.25 s, as in every run of
+EVALUATION.md; ``--param NAME:=VALUE``, repeatable, sets another of its parameters, these two
+included). A node that exits (a parameter it refuses) stops the benchmark with its error. Printed
+per run: messages received of those sent, CPU time of the receiving process per message (from
+/proc), and for the node the share of the odometry that became a published ``cloe/state`` and the
+latency of the states of every vehicle (wall clock at reception minus stamp, p50 and p99, over all
+the states received; until 2026-12-06 it was the first vehicle's alone, which the node steps and
 publishes first of a batch), and what the node says of its load in /diagnostics: how many reports
 it published, the largest ``busy`` (the share of wall time in its callbacks; WARN from 0.8) and the
 largest ``late_s`` (how long after its deadline its steady timer ran; WARN from 0.5 s). Speeds
@@ -262,23 +264,29 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
         procs['rx'] = subprocess.Popen([*me, '_relay', str(n), str(duration)], env=env,
                                        stdout=subprocess.PIPE, text=True)  # fmt: skip
     elif receiver == 'node':
+        errors = {}  # (a node's stderr: why it stopped, if it did)
         for k in range(shards):  # (one node, or one per shard: each its own process)
             shard = (['-p', f'shard_index:={k}', '-p', f'shard_count:={shards}', '-r',
                       f'__node:=cloe_inference_{k}'] if shards > 1 else [])  # fmt: skip
+            errors[k] = (tmp / f'node{k}.err').open('w+')
             procs[f'rx{k}'] = subprocess.Popen(
                 [sys.executable, '-m', 'cloe_ros.ros.inference_node', '--ros-args', '-p',
                  f'vehicles:={vehicles}', '-p', 'algorithm:=cloe_iv', '-p',
                  'reference_timeout:=5.0', *shard,
                  *(word for param in params for word in ('-p', param))],
-                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+                env=env, stdout=subprocess.DEVNULL, stderr=errors[k])  # fmt: skip
     receivers = [p for name, p in procs.items() if name.startswith('rx')]
     time.sleep(3.0)  # (discovery)
+    if receiver == 'node':
+        _check_running(procs, errors)
     cpu0 = sum(cpu_seconds(p.pid) for p in receivers)
     pub = subprocess.Popen([*me, '_publish', str(n), str(duration)], env=env,
                            stdout=subprocess.PIPE, text=True)  # fmt: skip
     out, _ = pub.communicate()
     sent = int(out.split()[-1])
     time.sleep(2.0)
+    if receiver == 'node':
+        _check_running(procs, errors)
     cpu = sum(cpu_seconds(p.pid) for p in receivers) - cpu0
     done.touch()
     result = {'sent': sent, 'cpu_s': cpu}
@@ -296,6 +304,21 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
         for p in receivers:
             p.wait(30)
     return result
+
+
+def _check_running(procs: dict, errors: dict) -> None:
+    """Stop the benchmark, with the node's own words, if a node has exited (a parameter it
+    refused, say): its row would otherwise read as a node that published nothing."""
+    for k, err in errors.items():
+        proc = procs[f'rx{k}']
+        if proc.poll() is not None:
+            for p in procs.values():
+                if p.poll() is None:
+                    p.kill()
+            err.seek(0)
+            lines = err.read().strip().splitlines()[-5:]
+            raise SystemExit(f'the inference node (shard {k}) exited with status '
+                             f'{proc.returncode}:\n' + '\n'.join(lines))  # fmt: skip
 
 
 def io_floor(bag: Path, out: Path) -> None:
@@ -371,6 +394,8 @@ def main() -> int:
                              'estimation) under the same load: what an engine that costs '
                              'nothing would deliver on this machine')  # fmt: skip
     args = parser.parse_args()
+    if args.shards < 1:
+        parser.error(f'--shards must be at least 1, got {args.shards}')
     if args.offline:
         offline(args.offline, args.repeat)
         return 0

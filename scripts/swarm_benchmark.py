@@ -253,6 +253,7 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
     env['SWARM_DONE'] = str(done)
     me = [sys.executable, __file__]
     procs = {}
+    errors = {}  # per node (shard): its stderr, to say why it stopped if it did
     if receiver == 'floor':
         procs['rx'] = subprocess.Popen([*me, '_floor', str(n), str(duration)], env=env,
                                        stdout=subprocess.PIPE, text=True)  # fmt: skip
@@ -264,7 +265,6 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
         procs['rx'] = subprocess.Popen([*me, '_relay', str(n), str(duration)], env=env,
                                        stdout=subprocess.PIPE, text=True)  # fmt: skip
     elif receiver == 'node':
-        errors = {}  # (a node's stderr: why it stopped, if it did)
         for k in range(shards):  # (one node, or one per shard: each its own process)
             shard = (['-p', f'shard_index:={k}', '-p', f'shard_count:={shards}', '-r',
                       f'__node:=cloe_inference_{k}'] if shards > 1 else [])  # fmt: skip
@@ -277,16 +277,14 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
                 env=env, stdout=subprocess.DEVNULL, stderr=errors[k])  # fmt: skip
     receivers = [p for name, p in procs.items() if name.startswith('rx')]
     time.sleep(3.0)  # (discovery)
-    if receiver == 'node':
-        _check_running(procs, errors)
+    _check_running(procs, errors)
     cpu0 = sum(cpu_seconds(p.pid) for p in receivers)
     pub = subprocess.Popen([*me, '_publish', str(n), str(duration)], env=env,
                            stdout=subprocess.PIPE, text=True)  # fmt: skip
     out, _ = pub.communicate()
     sent = int(out.split()[-1])
     time.sleep(2.0)
-    if receiver == 'node':
-        _check_running(procs, errors)
+    _check_running(procs, errors)
     cpu = sum(cpu_seconds(p.pid) for p in receivers) - cpu0
     done.touch()
     result = {'sent': sent, 'cpu_s': cpu}
@@ -303,6 +301,8 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
             p.terminate()
         for p in receivers:
             p.wait(30)
+    for err in errors.values():
+        err.close()
     return result
 
 

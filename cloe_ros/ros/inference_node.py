@@ -230,7 +230,7 @@ class InferenceNode(Node):
         self._last_estimate: dict[str, object] = {}
         self._last_prediction_note: dict[str, str] = {}
         names = ', '.join(self.vehicle_ns[v] for v in self.vehicles) or (
-            'no vehicle yet' if self.discover or not self.listed else 'no vehicle')
+            'no vehicle' if self.idle else 'no vehicle yet')
         notes = []
         if self.shard_count > 1:
             notes.append(

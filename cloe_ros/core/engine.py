@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import bisect
 import functools
+import hashlib
 import math
 from collections import Counter, deque
 from collections.abc import Callable
@@ -303,6 +304,20 @@ class Step:
     tracked: np.ndarray | None
 
 
+def prediction_offset_ns(config: EngineConfig, namespace: str) -> int:
+    """How far the prediction periods of the vehicle of ``namespace`` (as a recording shows it,
+    '/' for the root) are shifted, ns: 0 with ``prediction_phase`` 'aligned'; with 'spread', a
+    whole number of grid steps below the period, drawn from the namespace by BLAKE2 (the same in
+    every process and on every host, and unrelated to the shards' CRC-32 of it, so that the
+    vehicles of one shard still spread over the whole period)."""
+    prediction = config.prediction
+    if prediction.phase != 'spread' or not prediction.enabled:
+        return 0
+    steps = max(1, round(NS / prediction.rate) // config.step_ns)
+    digest = hashlib.blake2b(namespace.encode('utf-8'), digest_size=8).digest()
+    return int.from_bytes(digest, 'little') % steps * config.step_ns
+
+
 class VehicleEngine:
     """Validates one vehicle's inputs and runs its estimator in fixed steps of message time.
 
@@ -317,8 +332,14 @@ class VehicleEngine:
         config: EngineConfig,
         name: str = '',
         estimator_factory: EstimatorFactory = make_estimator,
+        namespace: str | None = None,
     ) -> None:
         self.name = name
+        #: The vehicle's namespace as a recording shows it ('/' for the root; default: ``name``,
+        #: which ``cloe infer`` takes from the bag's topics): with ``prediction_phase`` 'spread',
+        #: where in each period its predictions fall.
+        self.namespace = namespace if namespace is not None else (name or '/')
+        self._prediction_offset_ns = prediction_offset_ns(config, self.namespace)
         self.config = config
         self.stats = VehicleStats()
         self._factory = estimator_factory
@@ -1057,7 +1078,7 @@ class VehicleEngine:
                 self._t0_ns = t_ns
             self._anticipator.observe((t_ns - self._t0_ns) / NS, zeta, e.zeta_hat, used, r)
         if self.config.prediction.enabled:
-            slot = t_ns // round(NS / self.config.prediction.rate)
+            slot = (t_ns - self._prediction_offset_ns) // round(NS / self.config.prediction.rate)
             if self._prediction_slot is None or slot > self._prediction_slot:
                 self._prediction_slot = slot
                 if defer:

@@ -49,12 +49,17 @@ class PredictionConfig:
     rate: Predictions per second of message time, Hz.
     disturbance_time: Window of the recent-offset fit and time constant of its fading over the
         horizon, s (0: only steady-state offsets).
+    phase: ``'aligned'``: a vehicle predicts when its estimate enters a new ``1 / rate`` period
+        of message time, all vehicles on the same steps; ``'spread'``: the periods of each
+        vehicle are shifted by a whole number of grid steps drawn from its namespace
+        (:func:`~cloe_ros.core.engine.prediction_offset_ns`).
     """
 
     horizon: float = default('prediction_horizon')
     step: float = default('prediction_step')
     rate: float = default('prediction_rate')
     disturbance_time: float = default('prediction_disturbance_time')
+    phase: str = default('prediction_phase')
 
     def __post_init__(self) -> None:
         check_fields(self, 'prediction')  # defaults and ranges: cloe_ros.settings

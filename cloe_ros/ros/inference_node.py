@@ -376,7 +376,8 @@ class InferenceNode(Node):
 
     def _make_vehicle(self, vehicle: str, keep_stats: bool = False) -> None:
         old = self.engines.get(vehicle)
-        engine = VehicleEngine(self.engine_config, name=vehicle)
+        self.vehicle_ns[vehicle] = namespace = self._namespace(vehicle)
+        engine = VehicleEngine(self.engine_config, name=vehicle, namespace=namespace)
         if keep_stats and old is not None:
             engine.stats = old.stats
             engine.stats.resets += 1
@@ -385,7 +386,6 @@ class InferenceNode(Node):
             self.output_config, vehicle, self.engine_config.prediction.enabled
         )
         self.malformed.setdefault(vehicle, 0)
-        self.vehicle_ns[vehicle] = self._namespace(vehicle)
 
     def _namespace(self, vehicle: str) -> str:
         """The vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics

@@ -7,9 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
+from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine, prediction_offset_ns
 from cloe_ros.core.estimator import EstimatorConfig
 from cloe_ros.core.fleet import EstimatorPool, Fleet, PooledEstimator
+from cloe_ros.core.prediction import PredictionConfig
+from cloe_ros.ros.fleet import shard_of
 from test.core.test_engine import in_time_order, messages, simulated_flight
 
 IV = EngineConfig(estimator=EstimatorConfig('cloe_iv'))
@@ -240,3 +242,64 @@ def test_a_replaced_engine_leaves_its_pool_and_the_others_step_on(flight):
     assert len(out) > 700
     b = fleet.engines['/b']
     assert b.started and b.estimator.pool is fleet.engines['/a'].estimator.pool
+
+
+SPREAD = replace(IV, prediction=PredictionConfig(phase='spread'))
+
+
+def test_spread_predictions_fall_on_each_vehicles_own_step_of_the_period(flight):
+    """With prediction_phase 'spread', the vehicles of a swarm on one clock predict on different
+    grid steps of each period (each on the step its namespace draws, every period), and each
+    still gets, in a fleet, the estimates and predictions it gets alone."""
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)
+    names = [f'/uav{i}' for i in range(4)]
+    offsets = {n: prediction_offset_ns(SPREAD, n) for n in names}
+    assert len(set(offsets.values())) > 1, offsets  # (else the flight shows nothing)
+    vehicles = [(n, SPREAD, seq) for n in names]
+    fleet = Fleet()
+    for n in names:
+        fleet.add(VehicleEngine(SPREAD, name=n))
+    out = {n: [] for n in names}
+    for k, (name, kind, m) in enumerate(merged(vehicles)):
+        feed(fleet.engines[name], kind, m)
+        if k % len(names) == len(names) - 1:
+            for v, estimates in fleet.advance().items():
+                out[v] += estimates
+    for name, engine in fleet.engines.items():
+        out[name] += fleet.advance([name]).get(name, []) + engine.finish()
+    want = alone(vehicles)
+    period, step = round(NS / SPREAD.prediction.rate), SPREAD.step_ns
+    predicted = {}
+    for n in names:
+        assert_same(out[n], want[n])
+        stamps = [e.stamp_ns for e in out[n] if e.prediction is not None]
+        assert len(stamps) > 20
+        # after the first (the first estimate's), one a period, on the first step of each
+        # period shifted by the vehicle's offset
+        assert set(np.diff(stamps[1:])) == {period}
+        assert all((t - offsets[n]) % period < step for t in stamps[1:])
+        predicted[n] = set(stamps[1:])
+    for a in names:
+        for b in names:
+            if offsets[a] != offsets[b]:
+                assert not predicted[a] & predicted[b]
+
+
+def test_prediction_offsets_spread_over_the_period_in_every_shard():
+    """'aligned' shifts nothing; 'spread' draws each namespace's step of the period from a hash
+    unrelated to the shards' (a CRC-32 of the same namespace): a hundred vehicles in four shards
+    spread over most of the 20 steps of a period in each shard."""
+    names = [f'/uav{i}' for i in range(100)]
+    assert {prediction_offset_ns(IV, n) for n in names} == {0}
+    step = SPREAD.step_ns
+    steps = {n: prediction_offset_ns(SPREAD, n) // step for n in names}
+    assert all(0 <= s < 20 and prediction_offset_ns(SPREAD, n) == s * step
+               for n, s in steps.items())  # fmt: skip
+    for shard in range(4):
+        mine = {s for n, s in steps.items() if shard_of(n, 4) == shard}
+        assert len(mine) >= 10, (shard, sorted(mine))
+    assert VehicleEngine(SPREAD).namespace == '/'
+    assert VehicleEngine(SPREAD, name='/uav3')._prediction_offset_ns == steps['/uav3'] * step
+    without = replace(SPREAD, prediction=PredictionConfig(horizon=0.0, phase='spread'))
+    assert prediction_offset_ns(without, '/uav3') == 0

@@ -389,8 +389,9 @@ class InferenceNode(Node):
 
     def _namespace(self, vehicle: str) -> str:
         """The vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics
-        reports, how a report of the recording finds which algorithm made each output, and what
-        the shards hash."""
+        reports, how a report of the recording finds which algorithm made each output, what the
+        shards hash, and what places the vehicle's predictions with ``prediction_phase`` 'spread'
+        (as ``cloe infer`` places them for the vehicle of that namespace in a bag)."""
         return resolved_namespace(self, vehicle)
 
     def _ours(self, namespace: str) -> bool:

@@ -371,7 +371,8 @@ def run_bag(args) -> int:
                 return (t_ref[m], values[m]) if np.any(m) else None
 
         run = run_engine(engine_config, t, zeta, ref, plans,
-                         progress=lambda f, a=algorithm: bar(f'estimate {a}', f))  # fmt: skip
+                         progress=lambda f, a=algorithm: bar(f'estimate {a}', f),
+                         namespace=ns or '/')  # fmt: skip
         bar.close()
         # in flight: measured altitude above 0.2 m and the setpoint above the ground altitude;
         # a landed vehicle (motors off, often under a zero setpoint) follows no closed loop

@@ -393,9 +393,11 @@ def run_engine(
     reference: np.ndarray,
     plans=None,
     progress=None,
+    namespace: str = '/',
 ) -> Run:
-    """One engine over samples; see :func:`feed`."""
-    engine = VehicleEngine(algorithm_config)
+    """One engine over samples; see :func:`feed`. ``namespace``: the vehicle's, as a recording
+    shows it (it places the predictions with ``prediction_phase`` 'spread')."""
+    engine = VehicleEngine(algorithm_config, namespace=namespace)
     recorded, predicted = feed(engine, t, zeta, reference, plans, progress=progress)
     return collect(algorithm_config.estimator.algorithm, engine, recorded, predicted)
 

@@ -9,6 +9,7 @@ import pytest
 
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine, prediction_offset_ns
 from cloe_ros.core.estimator import EstimatorConfig
+from cloe_ros.core.evaluation import T0_NS, run_engine
 from cloe_ros.core.fleet import EstimatorPool, Fleet, PooledEstimator
 from cloe_ros.core.prediction import PredictionConfig
 from cloe_ros.ros.fleet import shard_of
@@ -303,3 +304,20 @@ def test_prediction_offsets_spread_over_the_period_in_every_shard():
     assert VehicleEngine(SPREAD, name='/uav3')._prediction_offset_ns == steps['/uav3'] * step
     without = replace(SPREAD, prediction=PredictionConfig(horizon=0.0, phase='spread'))
     assert prediction_offset_ns(without, '/uav3') == 0
+
+
+def test_run_engine_places_the_predictions_by_the_vehicles_namespace(flight):
+    """run_engine (`cloe evaluate bag`) predicts on the step the namespace draws, as `cloe
+    infer` and the node do for it."""
+    t, zeta, reference = flight
+    short = slice(0, 600)  # (6 s: some thirty predictions)
+    names = ('/', '/cf1', '/cf2', '/cf3')
+    offsets = {n: prediction_offset_ns(SPREAD, n) for n in names}
+    assert len(set(offsets.values())) > 1, offsets
+    period, step = round(NS / SPREAD.prediction.rate), SPREAD.step_ns
+    for n in names:
+        run = run_engine(SPREAD, t[short], zeta[short], reference[short], namespace=n)
+        assert run.engine.namespace == n
+        stamps = [T0_NS + round(t0 * NS) for t0 in run.pred_t[1:]]  # (after the first estimate's)
+        assert len(stamps) > 20
+        assert all((s - offsets[n]) % period < step for s in stamps), n

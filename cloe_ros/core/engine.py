@@ -761,12 +761,14 @@ class VehicleEngine:
     def _time_jump(self, new_stamp_ns: int, backward: bool) -> None:
         """Finish what can be finished, then restart the estimator at ``new_stamp_ns``. Backwards,
         the references held aside become the new timeline's (else those stamped after
-        ``new_stamp_ns`` are dropped: they are the old timeline's), and the plan is dropped."""
+        ``new_stamp_ns`` are dropped: they are the old timeline's), the plan is dropped, and the
+        prediction periods start over (the new timeline's are earlier than the last one's)."""
         self.stats.time_jumps += 1
         self._pending.extend(self._run(force_reference=True))
         self._stop_estimator()
         self._odom.clear()
         if backward:
+            self._prediction_slot = None
             if self._held_refs and self._held_refs_backward:
                 self._refs.clear()
                 self._take_held_references()

@@ -199,6 +199,12 @@ def test_backward_time_jump_starts_a_new_timeline(flight):
     assert engine.stats.time_jumps == 1
     assert out2 and out2[-1].stamp_ns < out[-1].stamp_ns
     assert not engine.stats.rejected
+    # the new timeline predicts at prediction_rate too (its periods are earlier than the old
+    # timeline's last: they start over), not only once it passes the old timeline's time
+    predicted = [e.stamp_ns for e in out2 if e.prediction is not None]
+    period = round(NS / engine.config.prediction.rate)
+    assert len(predicted) >= 3 * NS // period - 1
+    assert set(np.diff(predicted[1:])) == {period}
 
 
 def test_stopped_reference_is_held_after_the_timeout(flight):

@@ -268,10 +268,11 @@ SETTINGS: dict[str, Setting] = {s.name: s for s in (
     Setting('prediction_rate', 5.0, 'predictions per second of message time, Hz',
             range=(0.01, 1000.0), target='prediction.rate', **_RO),
     Setting('prediction_phase', 'aligned', 'when in each 1 / prediction_rate the predictions '
-            'fall: aligned, at the start of each period of message time, for every vehicle '
-            'alike; spread, each vehicle at its own grid step of the period (a hash of its '
-            'namespace), so that the predictions of a swarm on one clock do not all fall on '
-            'one step and delay its states', choices=('aligned', 'spread'),
+            'fall: aligned, at the first grid step of each period of message time, for every '
+            'vehicle alike; spread, each vehicle at its own grid step of the period (a hash of '
+            'its namespace), so that the predictions of a swarm on one clock do not all fall on '
+            'one step and delay its states (no shift when prediction_rate >= rate)',
+            choices=('aligned', 'spread'),
             target='prediction.phase', **_RO),
     Setting('prediction_disturbance_time', 0.5, 'window of the recent model-error fit and its '
             'fading time over the horizon, s (0: steady-state offsets only)', range=(0.0, 10.0),

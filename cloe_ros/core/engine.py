@@ -306,14 +306,17 @@ class Step:
 
 def prediction_offset_ns(config: EngineConfig, namespace: str) -> int:
     """How far the prediction periods of the vehicle of ``namespace`` (as a recording shows it,
-    '/' for the root) are shifted, ns: 0 with ``prediction_phase`` 'aligned'; with 'spread', a
-    whole number of grid steps below the period, drawn from the namespace by BLAKE2 (the same in
-    every process and on every host, and unrelated to the shards' CRC-32 of it, so that the
-    vehicles of one shard still spread over the whole period)."""
+    '/' for the root; '' and a trailing '/' are taken as that) are shifted, ns: 0 with
+    ``prediction_phase`` 'aligned'; with 'spread', a whole number of grid steps below the period,
+    drawn from the namespace by BLAKE2 (the same in every process and on every host, and
+    unrelated to the shards' CRC-32 of it, so that the vehicles of one shard still spread over
+    the whole period). At a prediction rate at or above the engine's, every step predicts and
+    the shift is 0."""
     prediction = config.prediction
     if prediction.phase != 'spread' or not prediction.enabled:
         return 0
     steps = max(1, round(NS / prediction.rate) // config.step_ns)
+    namespace = '/' + namespace.strip('/')
     digest = hashlib.blake2b(namespace.encode('utf-8'), digest_size=8).digest()
     return int.from_bytes(digest, 'little') % steps * config.step_ns
 
@@ -339,6 +342,8 @@ class VehicleEngine:
         #: which ``cloe infer`` takes from the bag's topics): with ``prediction_phase`` 'spread',
         #: where in each period its predictions fall.
         self.namespace = namespace if namespace is not None else (name or '/')
+        # (the prediction settings are read-only in the node, and a new rate makes new engines:
+        # the shift holds for the engine's life)
         self._prediction_offset_ns = prediction_offset_ns(config, self.namespace)
         self.config = config
         self.stats = VehicleStats()

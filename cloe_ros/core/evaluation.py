@@ -396,7 +396,8 @@ def run_engine(
     namespace: str = '/',
 ) -> Run:
     """One engine over samples; see :func:`feed`. ``namespace``: the vehicle's, as a recording
-    shows it (it places the predictions with ``prediction_phase`` 'spread')."""
+    shows it (it shifts the predictions with ``prediction_phase`` 'spread', from the samples'
+    origin ``T0_NS``: the instants are not those of the recording's stamps)."""
     engine = VehicleEngine(algorithm_config, namespace=namespace)
     recorded, predicted = feed(engine, t, zeta, reference, plans, progress=progress)
     return collect(algorithm_config.estimator.algorithm, engine, recorded, predicted)

@@ -257,6 +257,7 @@ def _add_topics(writer, reader, copies, encoders, engine_config, output_config) 
     key = f'cloe_ros.{output_config.output_ns.strip("/")}'
     writer.set_custom_data(f'{key}.algorithm', engine_config.estimator.algorithm)
     writer.set_custom_data(f'{key}.rate_hz', f'{engine_config.rate:g}')
+    writer.set_custom_data(f'{key}.prediction_phase', engine_config.prediction.phase)
     for topic in copies:
         writer.add_topic(topic, reader.topics[topic].msgtype, reader.topics[topic].offered_qos)
     for enc in encoders.values():

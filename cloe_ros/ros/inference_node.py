@@ -689,6 +689,7 @@ class InferenceNode(Node):
              'not tracked: ' + '; '.join(f'{c} ({why})' for c, why in untracked)),
             ('untracked_steps', str(s.untracked_steps)),
             ('rate_hz', f'{engine.config.rate:g}'),
+            ('prediction_phase', engine.config.prediction.phase),
             ('odom_silent_s', '' if silent is None else f'{silent:.1f}'),
             ('steps_per_s', f'{steps_per_s:.1f}'),
             ('steps', str(s.steps)),

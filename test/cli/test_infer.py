@@ -402,7 +402,8 @@ def test_outputs_of_the_contract(inferred):
     custom = yaml.safe_load((out / 'metadata.yaml').read_text())['rosbag2_bagfile_information'][
         'custom_data'
     ]
-    assert custom == {'cloe_ros.cloe.algorithm': 'cloe_iv', 'cloe_ros.cloe.rate_hz': '100'}
+    assert custom == {'cloe_ros.cloe.algorithm': 'cloe_iv', 'cloe_ros.cloe.rate_hz': '100',
+                      'cloe_ros.cloe.prediction_phase': 'aligned'}  # fmt: skip
     with BagReader(out) as reader:
         assert reader.custom_data == custom
 

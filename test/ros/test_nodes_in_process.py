@@ -597,6 +597,7 @@ def test_diagnostics_name_each_vehicle_by_its_recorded_namespace(context, namesp
         # (and each engine has it: it places the vehicle's predictions with prediction_phase
         # 'spread', as `cloe infer` does for the vehicle of that namespace in a recording)
         assert [inf.engines[v].namespace for v in inf.vehicles] == expected
+        assert {dict(s.values)['prediction_phase'] for s in statuses} == {'aligned'}
         # (the node's own subscriptions reach its graph cache asynchronously: wait for them.
         # Asked per topic, not per node: a query by node name takes the first node of that name
         # in the graph, which may be another test's that has not left it yet)

@@ -766,14 +766,12 @@ class VehicleEngine:
     def _time_jump(self, new_stamp_ns: int, backward: bool) -> None:
         """Finish what can be finished, then restart the estimator at ``new_stamp_ns``. Backwards,
         the references held aside become the new timeline's (else those stamped after
-        ``new_stamp_ns`` are dropped: they are the old timeline's), the plan is dropped, and the
-        prediction periods start over (the new timeline's are earlier than the last one's)."""
+        ``new_stamp_ns`` are dropped: they are the old timeline's), and the plan is dropped."""
         self.stats.time_jumps += 1
         self._pending.extend(self._run(force_reference=True))
         self._stop_estimator()
         self._odom.clear()
         if backward:
-            self._prediction_slot = None
             if self._held_refs and self._held_refs_backward:
                 self._refs.clear()
                 self._take_held_references()
@@ -1086,7 +1084,8 @@ class VehicleEngine:
             self._anticipator.observe((t_ns - self._t0_ns) / NS, zeta, e.zeta_hat, used, r)
         if self.config.prediction.enabled:
             slot = (t_ns - self._prediction_offset_ns) // round(NS / self.config.prediction.rate)
-            if self._prediction_slot is None or slot > self._prediction_slot:
+            # a new period: a later one, or any other after a jump back in time
+            if slot != self._prediction_slot:
                 self._prediction_slot = slot
                 if defer:
                     self._deferred = e

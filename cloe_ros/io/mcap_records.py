@@ -60,6 +60,7 @@ __all__ = [
     'decompress_chunk',
     'iter_records',
     'known_opcode',
+    'message_fields',
     'opcode_name',
     'parse_record',
     'read_head',
@@ -91,6 +92,13 @@ MESSAGE_PREFIX_SIZE = _size_of(Message(0, 0, b'', 0, 0)) - RECORD_HEAD_SIZE
 DATA_END_SIZE = _size_of(DataEnd(0))
 #: the fields of a footer the summary CRC covers (head, summary start, summary offset start)
 FOOTER_CRC_PREFIX = FOOTER_SIZE - 4
+
+
+#: a record head, and a message record's fields before its data, as the specification lays
+#: them out (little-endian; test/io/test_mcap_records.py checks them against the library's)
+_HEAD = struct.Struct('<BQ')
+_MESSAGE = struct.Struct('<HIQQ')
+_INDEX_HEAD = struct.Struct('<HI')
 
 
 class RecordError(ValueError):
@@ -150,6 +158,8 @@ def parse_record(op: int, body: bytes | memoryview) -> McapRecord | None:
                 msg = f'message record of {len(body)} bytes is shorter than its header'
                 raise RecordError(msg)
             return Message.read(_Bounded(body), len(body))
+        if op == Opcode.MESSAGE_INDEX:  # read for every chunk of a file without chunk CRCs
+            return _message_index(body)
         reader = _READERS.get(op)
         if reader is None:
             return None
@@ -163,10 +173,39 @@ def parse_record(op: int, body: bytes | memoryview) -> McapRecord | None:
     return record
 
 
+def _message_index(body: bytes | memoryview) -> MessageIndex:
+    """:meth:`MessageIndex.read <mcap.records.MessageIndex.read>`, its entries unpacked in one
+    call: the (log time, offset) pairs that start before the end its length gives."""
+    if len(body) < _INDEX_HEAD.size:
+        msg = f'message index record of {len(body)} bytes is shorter than its header'
+        raise RecordError(msg)
+    channel_id, length = _INDEX_HEAD.unpack_from(body)
+    pairs = -(-length // 16)
+    if _INDEX_HEAD.size + 16 * pairs > len(body):
+        msg = f'the {length} bytes of entries of a message index overrun its record'
+        raise RecordError(msg)
+    flat = struct.unpack_from(f'<{2 * pairs}Q', body, _INDEX_HEAD.size)
+    return MessageIndex(channel_id, list(zip(flat[::2], flat[1::2])))
+
+
 def read_head(data: bytes | memoryview) -> tuple[int, int]:
     """``(opcode, length)`` of a record head (``RECORD_HEAD_SIZE`` bytes)."""
-    stream = _Bounded(data[:RECORD_HEAD_SIZE])
-    return stream.read1(), stream.read8()
+    if len(data) < RECORD_HEAD_SIZE:
+        msg = f'a record head of {RECORD_HEAD_SIZE} bytes overruns the {len(data)} bytes at hand'
+        raise RecordError(msg)
+    return _HEAD.unpack_from(data)
+
+
+def message_fields(body: bytes | memoryview) -> tuple[int, int, bytes]:
+    """``(channel id, log time, data)`` of a message record's ``body``: the fields
+    :class:`~mcap.records.Message` reads, unpacked in one call (a chunk holds thousands of
+    messages, and the library's stream reads each field by itself). :class:`RecordError` when
+    the body is shorter than the fields before the data."""
+    if len(body) < MESSAGE_PREFIX_SIZE:
+        msg = f'message record of {len(body)} bytes is shorter than its header'
+        raise RecordError(msg)
+    channel_id, _sequence, log_time, _publish_time = _MESSAGE.unpack_from(body)
+    return channel_id, log_time, bytes(body[MESSAGE_PREFIX_SIZE:])
 
 
 def iter_records(data: bytes | memoryview) -> Iterator[tuple[int, int, memoryview]]:
@@ -177,7 +216,7 @@ def iter_records(data: bytes | memoryview) -> Iterator[tuple[int, int, memoryvie
     while pos < len(view):
         if pos + RECORD_HEAD_SIZE > len(view):
             raise RecordError(f'the data end inside a record header (at {pos})')
-        op, length = read_head(view[pos:])
+        op, length = _HEAD.unpack_from(view, pos)
         start = pos + RECORD_HEAD_SIZE
         if length > len(view) - start:
             raise RecordError(f'the {opcode_name(op)} record at {pos} overruns the data')

@@ -370,16 +370,14 @@ def _read_chunk(
                 raise _Damage(f'Invalid record opcode 0x{op:02x} at {pos} inside the chunk.')
             if op != mr.Opcode.MESSAGE:
                 continue
-            message = mr.parse_record(op, rec)
-            assert isinstance(message, Message)
-            log_ns = message.log_time
+            channel_id, log_ns, data = mr.message_fields(rec)
             if not chunk.message_start_time <= log_ns <= chunk.message_end_time:
                 msg = f"A message logged at {log_ns} ns lies outside the chunk's time range."
                 raise _Damage(msg)
-            found.add((message.channel_id, log_ns, pos))
-            topic = wanted.get(message.channel_id)
+            found.add((channel_id, log_ns, pos))
+            topic = wanted.get(channel_id)
             if topic is not None:
-                out.append((log_ns, topic, message.data))
+                out.append((log_ns, topic, data))
     except mr.RecordError as err:
         raise _Damage(str(err)[:1].upper() + str(err)[1:]) from err
     if not chunk.uncompressed_crc:  # a matching CRC vouches for the data; without one the index

@@ -45,6 +45,7 @@ from cloe_ros.io.outputs import PARAMETER_LABELS
 from .test_system import (
     TIMEOUT,
     RecorderCounts,
+    assert_exited_cleanly,
     gate,
     interrupt,
     logs,
@@ -117,8 +118,8 @@ def record_input_bag(ros, bag: Path) -> None:
     gated = gate(ros.node, recorder, sim, topics)  # the 2nd subscribers, once all are heard
     wait_for_lines(sim, 'done: ', timeout=DURATION + TIMEOUT)
     wait_for_counts(ros, dict.fromkeys(topics, N_INPUT))
-    statuses = interrupt({'bag_recorder': recorder, 'quadrotor_sim': sim})
-    assert statuses == {'bag_recorder': 0, 'quadrotor_sim': 0}, logs(recorder) + logs(sim)
+    stopped = {'bag_recorder': recorder, 'quadrotor_sim': sim}
+    assert_exited_cleanly(interrupt(stopped), stopped)
     for sub in gated:  # (the player must count only the inference nodes' subscriptions)
         ros.node.destroy_subscription(sub)
 
@@ -218,8 +219,8 @@ def test_replayed_bag_gives_the_offline_result(ros, tmp_path: Path) -> None:
     assert f'done: {2 * N_INPUT} messages' in played  # every odom and reference of the bag
     assert 'not acknowledged' not in played and 'playing without' not in played, played
     wait_for_counts(ros, counts)
-    statuses = interrupt({**nodes, 'bag_recorder': recorder})
-    assert statuses == dict.fromkeys(statuses, 0), {n: logs(p) for n, p in nodes.items()}
+    stopped = {**nodes, 'bag_recorder': recorder}
+    assert_exited_cleanly(interrupt(stopped), stopped)
 
     online = decoded(tmp_path / 'online', outputs)
     worst = compare(online, offline)

@@ -210,11 +210,7 @@ def fly(system, subscribers: int, sim_params: dict, inference: dict[str, dict],
 
     assert spin_until(system.executor, settled, timeout=TIMEOUT), counts.reports[-2:]
     procs['bag_recorder'], procs['quadrotor_sim'] = recorder, sim
-    statuses = interrupt(procs)
-    out = {name: logs(proc) for name, proc in procs.items()}
-    assert statuses == dict.fromkeys(statuses, 0), out
-    for name, text in out.items():
-        assert 'Traceback' not in text, f'{name}:\n{text}'
+    assert_exited_cleanly(interrupt(procs), procs)
 
 
 def gate(node, recorder: NodeProcess, sim: NodeProcess, topics: list[str]) -> list:
@@ -248,6 +244,16 @@ def interrupt(procs: dict[str, NodeProcess], timeout: float = 60.0) -> dict[str,
             pass
         statuses[name] = proc.stop(signal.SIGKILL)
     return statuses
+
+
+def assert_exited_cleanly(statuses: dict[str, int], procs: dict[str, NodeProcess]) -> None:
+    """Every process exited with status 0 and printed no traceback; else the test fails with
+    each one's status and whole output (an assertion's message would be cut to a few lines)."""
+    out = {name: logs(proc) for name, proc in procs.items()}
+    bad = [name for name in procs if statuses.get(name) != 0 or 'Traceback' in out[name]]
+    if bad:
+        pytest.fail('\n'.join(f'--- {name}: exit status {statuses.get(name)}, output:\n{out[name]}'
+                               for name in bad))  # fmt: skip
 
 
 def read_bag(bag: Path) -> dict[str, list[tuple[int, str, object]]]:

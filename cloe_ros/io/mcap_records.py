@@ -13,6 +13,11 @@ them:
 
 A CRC of 0 means "not computed" (the specification's convention; rosbags writes none).
 
+The records read once per message or chunk (a message's fields, :func:`message_fields`; a
+record's head; a message index) are unpacked with one precompiled :mod:`struct` call each, in the
+specification's layout, where the library's stream reads each field by itself: a chunk holds
+thousands of messages. test/io/test_mcap_records.py checks that they equal the library's readers.
+
 Specification: https://mcap.dev/spec. No rclpy here.
 """
 

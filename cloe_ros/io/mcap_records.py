@@ -159,10 +159,9 @@ def parse_record(op: int, body: bytes | memoryview) -> McapRecord | None:
     UTF-8, a schema has the reserved id 0."""
     try:
         if op == Opcode.MESSAGE:
-            if len(body) < MESSAGE_PREFIX_SIZE:
-                msg = f'message record of {len(body)} bytes is shorter than its header'
-                raise RecordError(msg)
-            return Message.read(_Bounded(body), len(body))
+            channel_id, sequence, log_time, publish_time = _message_prefix(body)
+            return Message(channel_id, log_time, bytes(body[MESSAGE_PREFIX_SIZE:]), publish_time,
+                           sequence)  # fmt: skip
         if op == Opcode.MESSAGE_INDEX:  # read for every chunk of a file without chunk CRCs
             return _message_index(body)
         reader = _READERS.get(op)
@@ -206,11 +205,17 @@ def message_fields(body: bytes | memoryview) -> tuple[int, int, bytes]:
     :class:`~mcap.records.Message` reads, unpacked in one call (a chunk holds thousands of
     messages, and the library's stream reads each field by itself). :class:`RecordError` when
     the body is shorter than the fields before the data."""
+    channel_id, _sequence, log_time, _publish_time = _message_prefix(body)
+    return channel_id, log_time, bytes(body[MESSAGE_PREFIX_SIZE:])
+
+
+def _message_prefix(body: bytes | memoryview) -> tuple[int, int, int, int]:
+    """``(channel id, sequence, log time, publish time)``, the fields of a message record's
+    ``body`` before its data; :class:`RecordError` when the body is shorter than them."""
     if len(body) < MESSAGE_PREFIX_SIZE:
         msg = f'message record of {len(body)} bytes is shorter than its header'
         raise RecordError(msg)
-    channel_id, _sequence, log_time, _publish_time = _MESSAGE.unpack_from(body)
-    return channel_id, log_time, bytes(body[MESSAGE_PREFIX_SIZE:])
+    return _MESSAGE.unpack_from(body)
 
 
 def iter_records(data: bytes | memoryview) -> Iterator[tuple[int, int, memoryview]]:

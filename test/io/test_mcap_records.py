@@ -47,6 +47,8 @@ def test_a_cut_message_is_refused():
     body = _body(Message(1, 2, b'', 3, 4))
     with pytest.raises(mr.RecordError, match='shorter than its header'):
         mr.message_fields(body[:-1])
+    with pytest.raises(mr.RecordError, match='shorter than its header'):
+        mr.parse_record(mr.Opcode.MESSAGE, body[:-1])
     with pytest.raises(mr.RecordError):
         mr.read_head(b'\x05' * (mr.RECORD_HEAD_SIZE - 1))
 

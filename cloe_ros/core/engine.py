@@ -758,19 +758,27 @@ class VehicleEngine:
         reset, a vehicle carried to another place): finish what can be finished and restart the
         estimator at ``new_stamp_ns`` on the same timeline (the identified model is kept)."""
         self.stats.position_jumps += 1
+        self._end_timeline()
+        self._anchor_ns, self._anchor_exact = new_stamp_ns, False
+
+    def _end_timeline(self) -> None:
+        """Before a restart: run the steps the odometry covers, holding the last reference
+        (their estimates wait in :meth:`take_pending`), then stop the estimator and drop the
+        odometry. The estimator leaves the fleet's pool first, as its stop would have it do:
+        those steps are this vehicle's alone, and a row of a pool stepped alone is copied out
+        of the pool and back at every step (a node behind its inputs can have hundreds of steps
+        waiting for references when a hole in its odometry reads as a time jump)."""
+        self._est = self._set_estimator(None)  # (its own now, out of any pool)
         self._pending.extend(self._run(force_reference=True))
         self._stop_estimator()
         self._odom.clear()
-        self._anchor_ns, self._anchor_exact = new_stamp_ns, False
 
     def _time_jump(self, new_stamp_ns: int, backward: bool) -> None:
         """Finish what can be finished, then restart the estimator at ``new_stamp_ns``. Backwards,
         the references held aside become the new timeline's (else those stamped after
         ``new_stamp_ns`` are dropped: they are the old timeline's), and the plan is dropped."""
         self.stats.time_jumps += 1
-        self._pending.extend(self._run(force_reference=True))
-        self._stop_estimator()
-        self._odom.clear()
+        self._end_timeline()
         if backward:
             if self._held_refs and self._held_refs_backward:
                 self._refs.clear()

@@ -246,6 +246,55 @@ def test_a_replaced_engine_leaves_its_pool_and_the_others_step_on(flight):
     assert b.started and b.estimator.pool is fleet.engines['/a'].estimator.pool
 
 
+WAITS = replace(IV, reference_wait='stamps', reference_timeout=5.0)
+
+
+def test_the_steps_left_at_a_time_jump_run_out_of_the_pool(flight, monkeypatch):
+    """A hole in a vehicle's odometry that reads as a time jump (a node behind its inputs loses
+    a run of them) ends its timeline: the steps its odometry covers, waiting for references,
+    run then on the last reference. They run on the vehicle's estimator taken out of the pool
+    (as it is about to stop), not on its row stepped alone in the pool, which copies the row out
+    and back at every step; the estimates are those the vehicle gets alone."""
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)
+    cut = seq[0][1].stamp_ns + 6 * NS
+    # /b: no reference from 6 s on, its odometry on to 6.5 s (50 steps wait), a hole of 2 s
+    holed = [(kind, m) for kind, m in seq if m.stamp_ns < cut
+             or (kind == 'odom' and m.stamp_ns < cut + NS // 2) or m.stamp_ns >= cut + 5 * NS // 2]
+    vehicles = [('/a', WAITS, seq), ('/b', WAITS, holed)]
+    pooled = []  # the pool's steps while an input is fed (not in a round of the fleet)
+    feeding = [False]
+    step = EstimatorPool.step
+
+    def counted(self, keys, *args):
+        if feeding[0]:
+            pooled.append(keys)
+        return step(self, keys, *args)
+
+    monkeypatch.setattr(EstimatorPool, 'step', counted)
+    fleet = Fleet()
+    for name, config, _ in vehicles:
+        fleet.add(VehicleEngine(config, name=name))
+    out = {name: [] for name, _, _ in vehicles}
+    for name, kind, m in merged(vehicles):
+        feeding[0] = True
+        feed(fleet.engines[name], kind, m)
+        feeding[0] = False
+        for v, estimates in fleet.advance().items():
+            out[v] += estimates
+    for name, engine in fleet.engines.items():
+        out[name] += engine.finish()
+    want = alone(vehicles)
+    for name, _, _ in vehicles:
+        assert_same(out[name], want[name])
+    b = fleet.engines['/b']
+    assert b.stats.time_jumps == 1 and b.stats.resets == 0
+    ended = [e for e in out['/b'] if cut <= e.stamp_ns <= cut + NS // 2]
+    assert len(ended) >= 45  # (the steps that waited, run at the jump)
+    assert pooled == []
+    assert b.estimator.pool is fleet.engines['/a'].estimator.pool  # (back in it after the jump)
+
+
 SPREAD = replace(IV, prediction=PredictionConfig(phase='spread'))
 
 

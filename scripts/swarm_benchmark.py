@@ -23,7 +23,9 @@ vehicles over K nodes (``shard_index`` / ``shard_count``, each its own process, 
 the node's columns are then the K nodes together (CPU summed, the largest ``busy`` and ``late_s``
 of any). ``--relay`` also runs, under the same load, a node that only receives and publishes each
 odometry message back as the vehicle's ``cloe/state`` (no estimation): what an inference node whose
-engine cost nothing would deliver, and its CPU per message.
+engine cost nothing would deliver, and its CPU per message; then that relay publishing the node's
+other outputs too (parameters, named parameters, prediction, its radius and markers, real bytes at
+the default rates): what the node's output contract alone costs on DDS.
 
     .venv/bin/python scripts/swarm_benchmark.py --offline bags/position [--repeat 3]
 
@@ -36,6 +38,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import pickle
 import struct
 import subprocess
 import sys
@@ -153,25 +156,45 @@ def floor(n: int, duration: float) -> None:
     _serve(node, duration, count)
 
 
-def relay(n: int, duration: float) -> None:
+def relay(n: int, duration: float, outputs: Path | None = None) -> None:
     """The least an inference node does on DDS: per odometry message received, one Odometry
     published on the vehicle's ``cloe/state`` (the received bytes, so the stamp is the
     odometry's); the references are received and dropped. No estimation: what receiving and
-    publishing cost, and how late the states come, with an engine that costs nothing."""
+    publishing cost, and how late the states come, with an engine that costs nothing.
+
+    ``outputs`` (a file of :func:`_output_samples`' messages, pickled): the relay also keeps
+    the node's other topics and their rates, at the defaults. It subscribes to ``reference_plan``
+    as well, and publishes, beside each state, the node's ``parameters`` and
+    ``parameters_named`` every 10th odometry message (``parameters_rate`` 10 Hz) and its
+    ``prediction``, ``prediction_radius`` and ``prediction_markers`` every 20th
+    (``prediction_rate`` 5 Hz), reliable as the node's: the bytes the node's encoder gives for a
+    real estimate, as they are. What any node that keeps the output contract pays on DDS, whatever
+    its engine costs. (/diagnostics, once a second, is left out.)"""
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Odometry
+    from nav_msgs.msg import Path as PathMsg
 
     from cloe_ros.ros.common import qos
+    from cloe_ros.ros.inference_node import OUTPUT_TYPES
 
     rclpy.init()
     node = rclpy.create_node('swarm_relay')
     count = [0]
+    samples = pickle.loads(outputs.read_bytes()) if outputs else {}
+    every = {'parameters': 10, 'parameters_named': 10, 'prediction': 20,
+             'prediction_radius': 20, 'prediction_markers': 20}  # fmt: skip
 
-    def forward(pub):
+    def forward(pub, others: list):
+        seen = [0]  # (every vehicle on the same ticks, as the node's defaults have it)
+
         def callback(raw: bytes) -> None:
             count[0] += 1
             pub.publish(raw)
+            seen[0] += 1
+            for period, other, data in others:
+                if seen[0] % period == 0:
+                    other.publish(data)
 
         return callback
 
@@ -180,11 +203,48 @@ def relay(n: int, duration: float) -> None:
 
     for k in range(n):
         pub = node.create_publisher(Odometry, f'/uav{k}/cloe/state', qos(depth=100))
-        node.create_subscription(Odometry, f'/uav{k}/odom', forward(pub), qos(depth=1000),
-                                 raw=True)  # fmt: skip
+        others = [(every[name], node.create_publisher(OUTPUT_TYPES[msgtype],
+                                                      f'/uav{k}/cloe/{name}', qos(depth=100)),
+                   data) for name, (msgtype, data) in samples.items()]  # fmt: skip
+        node.create_subscription(Odometry, f'/uav{k}/odom', forward(pub, others),
+                                 qos(depth=1000), raw=True)  # fmt: skip
         node.create_subscription(PoseStamped, f'/uav{k}/reference', drop, qos(depth=1000),
                                  raw=True)  # fmt: skip
+        if outputs:
+            node.create_subscription(PathMsg, f'/uav{k}/reference_plan', drop,
+                                     qos(depth=1000), raw=True)  # fmt: skip
     _serve(node, duration, count)
+
+
+def _output_samples() -> dict[str, tuple[str, bytes]]:
+    """The node's outputs other than the state, one message of each (output name -> (message
+    type, CDR)), as its encoder gives them for an estimate of the simulated position flight that
+    holds a prediction (default settings)."""
+    sys.path.insert(0, str(REPO))
+    from cloe_ros.core.engine import VehicleEngine
+    from cloe_ros.io.config import DEFAULTS, build_configs
+    from cloe_ros.io.outputs import OutputEncoder
+    from test.core.test_engine import in_time_order, simulated_flight
+    from test.core.test_engine import messages as flight_messages
+
+    engine_config, output_config = build_configs(dict(DEFAULTS))
+    engine = VehicleEngine(engine_config, name='/uav0')
+    encoder = OutputEncoder(output_config, '/uav0', engine_config.prediction.enabled)
+    types = encoder.topics
+    found: dict[str, tuple[str, bytes]] = {}
+    for kind, message in in_time_order(*flight_messages(simulated_flight())):
+        if kind == 'odom':
+            engine.add_odometry(message)
+        else:
+            engine.add_reference(message)
+        for estimate in engine.advance():
+            for topic, _stamp, data in encoder.encode(estimate, 'world', 'base_link'):
+                name = topic.rsplit('/', 1)[1]
+                if name not in ('state', 'parameter_labels'):
+                    found[name] = (types[topic], data)
+        if len(found) == 5:
+            return found
+    raise RuntimeError(f'the simulated flight gave only these outputs: {sorted(found)}')
 
 
 def listen(n: int, watch: str) -> None:
@@ -261,9 +321,13 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
         vehicles = '[' + ','.join(f"'/uav{k}'" for k in range(n)) + ']'
         procs['listen'] = subprocess.Popen([*me, '_listen', str(n), str(done)], env=env,
                                            stdout=subprocess.PIPE, text=True)  # fmt: skip
-    if receiver == 'relay':
-        procs['rx'] = subprocess.Popen([*me, '_relay', str(n), str(duration)], env=env,
-                                       stdout=subprocess.PIPE, text=True)  # fmt: skip
+    if receiver in ('relay', 'relay_outputs'):
+        samples = []
+        if receiver == 'relay_outputs':  # (computed here, so as not to count in its CPU time)
+            samples = [str(tmp / 'outputs.pickle')]
+            Path(samples[0]).write_bytes(pickle.dumps(_output_samples()))
+        procs['rx'] = subprocess.Popen([*me, f'_{receiver}', str(n), str(duration), *samples],
+                                       env=env, stdout=subprocess.PIPE, text=True)  # fmt: skip
     elif receiver == 'node':
         for k in range(shards):  # (one node, or one per shard: each its own process)
             shard = (['-p', f'shard_index:={k}', '-p', f'shard_count:={shards}', '-r',
@@ -295,7 +359,7 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
         result.update(states=int(words[1]), p50=float(words[3]), p99=float(words[5]),
                       busy=float(words[7]), late=float(words[9]),
                       reports=int(words[11]))  # fmt: skip
-        if receiver == 'relay':
+        if receiver != 'node':
             procs['rx'].communicate()
         for p in receivers:
             p.terminate()
@@ -366,6 +430,8 @@ def main() -> int:
         {'_publish': lambda: publish(int(sys.argv[2]), float(sys.argv[3])),
          '_floor': lambda: floor(int(sys.argv[2]), float(sys.argv[3])),
          '_relay': lambda: relay(int(sys.argv[2]), float(sys.argv[3])),
+         '_relay_outputs': lambda: relay(int(sys.argv[2]), float(sys.argv[3]),
+                                         Path(sys.argv[4])),
          '_listen': lambda: listen(int(sys.argv[2]), sys.argv[3]),
          '_io_floor': lambda: io_floor(Path(sys.argv[2]), Path(sys.argv[3]))}[sys.argv[1]]()
         return 0
@@ -390,9 +456,11 @@ def main() -> int:
                         help="another of the node's parameters (repeatable), e.g. "
                              "prediction_rate:=1.0")  # fmt: skip
     parser.add_argument('--relay', action='store_true',
-                        help='also run the relay (receive, publish one state per odometry, no '
-                             'estimation) under the same load: what an engine that costs '
-                             'nothing would deliver on this machine')  # fmt: skip
+                        help='also run, under the same load, the relay (receive, publish one '
+                             'state per odometry, no estimation: what an engine that costs '
+                             'nothing would deliver on this machine) and the relay with the '
+                             "node's other outputs at their default rates (what keeping the "
+                             'output contract costs on DDS)')  # fmt: skip
     args = parser.parse_args()
     if args.shards < 1:
         parser.error(f'--shards must be at least 1, got {args.shards}')
@@ -414,10 +482,12 @@ def main() -> int:
             f = run(n, args.duration, 'floor', Path(tmp))
             floor_us = 1e6 * f['cpu_s'] / max(f['received'], 1)
             odom = round(args.duration * 100) * n
-            if args.relay:
-                r = run(n, args.duration, 'relay', Path(tmp))
+            for relay_kind, what in (('relay', 'relay: no estimation'),
+                                     ('relay_outputs', "relay with the node's outputs: no "
+                                                       'estimation')) if args.relay else ():
+                r = run(n, args.duration, relay_kind, Path(tmp))
                 relay_us = 1e6 * r['cpu_s'] / r['sent']
-                print(f"| {n} (relay: no estimation) | {f['received']} of {f['sent']}, "
+                print(f"| {n} ({what}) | {f['received']} of {f['sent']}, "
                       f"{floor_us:.0f} us | {r['states']} of {odom} "
                       f"({100 * r['states'] / odom:.1f} %), {relay_us:.0f} us, "
                       f"{relay_us / floor_us:.1f}x, {1e3 * r['p50']:.0f} / "

@@ -15,8 +15,9 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
 * publishes ``<ns>/<output_ns>/state`` (nav_msgs/Odometry) every step,
   ``<ns>/<output_ns>/parameters`` (std_msgs/Float64MultiArray, labelled) at ``parameters_rate`` and
   ``<ns>/<output_ns>/prediction`` (nav_msgs/Path, poses at future stamps) at ``prediction_rate``;
-* publishes ``/diagnostics`` every ``diagnostics_period`` and serves ``~/reset``
-  (std_srvs/Trigger).
+* publishes ``/diagnostics`` every ``diagnostics_period`` (on its timer, or from its inputs when
+  the timer's turn is held up behind them: a node behind its inputs still reports on time) and
+  serves ``~/reset`` (std_srvs/Trigger).
 """
 
 from __future__ import annotations
@@ -81,6 +82,12 @@ STALE_AFTER = 2.0
 #: :class:`Load`.
 BUSY_WARN = 0.8
 LATE_WARN = 0.5
+#: A /diagnostics report is due once this share of ``diagnostics_period`` (node clock) has passed
+#: since the last one (less than all of it, so that the timer's jitter does not skip a period).
+DIAGNOSTICS_DUE = 0.9
+#: The inputs look whether a report is due at most this often, s of wall time (and at most four
+#: times a ``diagnostics_period``).
+DIAGNOSTICS_POLL = 0.1
 
 
 class Load:
@@ -217,10 +224,14 @@ class InferenceNode(Node):
         self.diagnostics_pub = self.create_publisher(
             DiagnosticArray, '/diagnostics', qos(depth=10)
         )
+        self._diag_period_ns = round(declared['diagnostics_period'] * NS)
         self._diag_timer = self.create_timer(
-            declared['diagnostics_period'], self.load.timed(self._publish_diagnostics)
+            declared['diagnostics_period'], self.load.timed(self._diagnostics_if_due)
         )
         self._last_diag = (time.monotonic(), {v: 0 for v in self.vehicles})
+        self._diag_stamp_ns = self.get_clock().now().nanoseconds  # (node clock) of the last report
+        self._diag_poll = min(DIAGNOSTICS_POLL, 0.25 * declared['diagnostics_period'])
+        self._diag_poll_at = time.monotonic() + self._diag_poll  # when the inputs next look
         self.create_service(Trigger, '~/reset', self._reset_service)
         self._applied = self._settings()
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -583,7 +594,11 @@ class InferenceNode(Node):
         return out
 
     def _input(self, vehicle: str) -> None:
-        """Vehicle ``vehicle`` has new input: step it now, or with the others at the next batch."""
+        """Vehicle ``vehicle`` has new input: step it now, or with the others at the next batch.
+        Also publishes /diagnostics if a report is due (:meth:`_diagnostics_if_due`)."""
+        if time.monotonic() >= self._diag_poll_at:
+            self._diag_poll_at = time.monotonic() + self._diag_poll
+            self._diagnostics_if_due()
         if self._batch_timer is None:
             self._publish_all(self.fleet.advance([vehicle]))
         else:
@@ -771,6 +786,17 @@ class InferenceNode(Node):
         return '; '.join(words) + (', states come late or are missed (fewer vehicles per node: '
                                    'shard_count)')  # fmt: skip
 
+    def _diagnostics_if_due(self) -> None:
+        """Publish /diagnostics if ``DIAGNOSTICS_DUE`` of a ``diagnostics_period`` of the node's
+        clock has passed since the last report (or its clock went back). The diagnostics timer
+        calls it, and so do the inputs (:meth:`_input`): rclpy's EventsExecutor queues a timer's
+        turn behind the messages already waiting, so a node behind its inputs, whose load is the
+        news, would otherwise report seconds late and skip many periods."""
+        now_ns = self.get_clock().now().nanoseconds
+        since = now_ns - self._diag_stamp_ns
+        if since >= DIAGNOSTICS_DUE * self._diag_period_ns or since < 0:
+            self._publish_diagnostics()
+
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
         t_prev, steps_prev = self._last_diag
@@ -790,6 +816,7 @@ class InferenceNode(Node):
         self._overloaded = bool(overload)
         statuses.append(self.node_status())
         stamp = self.get_clock().now().nanoseconds
+        self._diag_stamp_ns = stamp
         self.diagnostics_pub.publish(encode_diagnostics(stamp, statuses))
 
 

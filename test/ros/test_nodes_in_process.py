@@ -651,6 +651,38 @@ def test_a_vehicle_whose_odometry_stops_is_reported_silent(context, monkeypatch)
         inf.destroy_node()
 
 
+def test_diagnostics_go_out_from_the_inputs_when_the_timer_is_held_up(context, monkeypatch):
+    """A node behind its inputs runs its timers late (rclpy's EventsExecutor queues their turn
+    behind the messages waiting), so its inputs publish the /diagnostics report that is due.
+    Here no executor spins, so no timer runs: the inputs, fed to the callbacks, publish the
+    reports, one per ``diagnostics_period`` of the node's clock at most."""
+    period = 0.05
+    inf = InferenceNode(context=context, parameter_overrides=[
+        Parameter('diagnostics_period', value=period)])  # fmt: skip
+    sent: list[bytes] = []
+    monkeypatch.setattr(inf.diagnostics_pub, 'publish', sent.append)
+    try:
+        zeta, r = np.zeros(12), np.array([0.0, 0.0, 0.0, 1.0])
+        zeta[10] = 1.0
+        odom_cb, ref_cb = inf._odometry_callback(''), inf._reference_callback('')
+        k = 0
+        deadline = time.monotonic() + TIMEOUT
+        while len(sent) < 3 and time.monotonic() < deadline:
+            stamp = T0 + k * 10_000_000
+            if k % 10 == 0:
+                ref_cb(_ref_bytes(stamp, r))
+            odom_cb(_odom_bytes(stamp, zeta))
+            k += 1
+        assert len(sent) >= 3, f'{len(sent)} reports after {k} odometry messages'
+        reports = [messages.decode_diagnostics(raw) for raw in sent]
+        stamps = [stamp for stamp, _ in reports]
+        assert min(np.diff(stamps)) >= 0.9 * period * NS
+        names = {status.name for status in reports[-1][1]}
+        assert names == {'cloe_inference', 'cloe_inference: /'}
+    finally:
+        inf.destroy_node()
+
+
 def test_each_simulated_vehicle_has_its_own_body_frame(context):
     sim = SimulatorNode(context=context, parameter_overrides=[
         Parameter('vehicles', value=['/uav1', '/uav2']), Parameter('duration', value=0.2),

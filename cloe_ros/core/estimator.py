@@ -158,43 +158,6 @@ def _known_gathers() -> tuple[np.ndarray, np.ndarray]:
 KNOWN_C, KNOWN_A = _known_gathers()
 
 
-def observer_drift(
-    zeta_hat: np.ndarray, theta_hat: np.ndarray, r: np.ndarray, buf: StepBuffers
-) -> np.ndarray:
-    """``A(Theta_hat) zeta_hat + B(Theta_hat) r`` into ``buf.f``; fills ``buf.w`` and ``buf.phi``.
-
-    The known rows are ``A0 zeta_hat``; each block's last row is ``Theta_b . [zeta_hat_b ; r_b]``
-    (one compiled call, :func:`~cloe_ros.core.kernels.observer_drift`). Returns ``buf.f``.
-    """
-    kernels.observer_drift(
-        np.ascontiguousarray(zeta_hat, dtype=float), np.ascontiguousarray(theta_hat, dtype=float),
-        np.ascontiguousarray(r, dtype=float), KNOWN_C, KNOWN_A, REGRESSOR_INDEX, BLOCK_STARTS,
-        UNKNOWN_ROWS, buf.w, buf.phi, buf.grad, buf.rows, buf.f,
-    )  # fmt: skip
-    return buf.f
-
-
-def observer_update(
-    zeta_hat: np.ndarray,
-    f: np.ndarray,
-    gain_l: np.ndarray,
-    zeta: np.ndarray,
-    h: float,
-    lambda_: np.ndarray | None,
-    exponents: np.ndarray,
-    buf: StepBuffers,
-) -> None:
-    """The observer's step of ``h`` s, in place, shared by CLOE, CLOE-SM and cloe_iv: the
-    sliding-mode term ``lambda_ |e|^exponents sign(e)`` (``e = buf.e``; None: no term) added to
-    the drift ``f``, then the semi-implicit update
-    ``zeta_hat+ = (zeta_hat + h (f + L zeta)) / (1 + h L)`` (one compiled call,
-    :func:`~cloe_ros.core.kernels.observer_update`)."""
-    kernels.observer_update(
-        zeta_hat, f, gain_l, np.ascontiguousarray(zeta, dtype=float), float(h),
-        exponents if lambda_ is None else lambda_, lambda_ is not None, exponents, buf.e,
-    )  # fmt: skip
-
-
 def cloe_step(
     zeta_hat: np.ndarray,
     theta_hat: np.ndarray,
@@ -210,7 +173,8 @@ def cloe_step(
     use_sm: bool = True,
     theta_gate: np.ndarray | None = None,
 ) -> None:
-    """Advance N estimators by one step of ``h`` seconds, in place.
+    """Advance N estimators by one step of ``h`` seconds, in place, in one compiled call
+    (:func:`~cloe_ros.core.kernels.cloe_step`, the observer's step shared with cloe_iv).
 
     Args:
         zeta_hat: Estimated states (N, 12), updated.
@@ -229,23 +193,14 @@ def cloe_step(
             reference is not tracked); None: all adapt.
 
     """
-    e, tmp = buf.e, buf.tmp
-    np.subtract(zeta, zeta_hat, out=e)
-    f = observer_drift(zeta_hat, theta_hat, r, buf)
-    observer_update(zeta_hat, f, gain_l, zeta, h, lambda_ if use_sm else None, exponents, buf)
-    # Identifier: Theta_b' = Gamma e_last [zeta_hat_b ; r_b]  (regressor before the update).
-    np.take(e, PARAM_ROW, axis=1, out=buf.grad, mode='clip')
-    buf.grad *= buf.phi
-    buf.grad *= gamma_theta
-    buf.grad *= h
-    if theta_gate is not None:
-        buf.grad *= theta_gate
-    theta_hat += buf.grad
-    # Adaptive observer gain: l_i' = gamma_i e_i^2.
-    np.square(e, out=tmp)
-    tmp *= gamma_l
-    tmp *= h
-    gain_l += tmp
+    kernels.cloe_step(
+        zeta_hat, theta_hat, gain_l, np.ascontiguousarray(zeta, dtype=float),
+        np.ascontiguousarray(r, dtype=float), float(h), gamma_theta, gamma_l, lambda_, use_sm,
+        exponents, buf.grad if theta_gate is None else np.ascontiguousarray(theta_gate, float),
+        theta_gate is not None,
+        KNOWN_C, KNOWN_A, REGRESSOR_INDEX, BLOCK_STARTS, UNKNOWN_ROWS, PARAM_ROW, buf.e, buf.w,
+        buf.phi, buf.grad, buf.rows, buf.f, buf.tmp,
+    )  # fmt: skip
 
 
 class CloeEstimator(Rows):
@@ -287,9 +242,9 @@ class CloeEstimator(Rows):
         )
         self.gain_l = np.array([[c.l_initial] * N_STATES for c in configs], dtype=float)
         # full-width gains: broadcasting a column would make numpy buffer (allocate) per step
-        self.gamma_theta = np.array([[c.gamma_theta] * N_PARAMS for c in configs])
-        self.gamma_l = np.array([[c.gamma_l] * N_STATES for c in configs])
-        self.lambda_ = np.array([c.lambda_ for c in configs])
+        self.gamma_theta = np.array([[c.gamma_theta] * N_PARAMS for c in configs], dtype=float)
+        self.gamma_l = np.array([[c.gamma_l] * N_STATES for c in configs], dtype=float)
+        self.lambda_ = np.array([c.lambda_ for c in configs], dtype=float)
         self.exponents = np.array([c.sm_exponents for c in configs], dtype=float)
         self.use_sm = bool(np.any(self.lambda_))
         self._allocate_work(n)

@@ -34,8 +34,9 @@ The kernels Python calls compile when their module is imported (explicit signatu
 cached on disk beside it (``cache=True``), so no message ever waits on a compile: the first
 import on a machine takes a few seconds, later ones load the machine code. The helpers, which
 only other kernels call (:meth:`Compiler.helper`), are compiled into their callers and never
-loaded by themselves: an import loads 25 kernels instead of 64, about 0.2 s less per process
-(EVALUATION.md, section 4).
+loaded by themselves: an import loads only the kernels Python calls (24 of the 52). When that
+came in, it loaded 25 kernels instead of 64, about 0.2 s less per process (EVALUATION.md,
+section 4).
 """
 
 from __future__ import annotations
@@ -633,14 +634,14 @@ def state_message(zeta, variance, with_variance, out):
 # ------------------------------------------------------------------------------ the observer
 
 
-@_compiled(f'void({_F2}, {_F2}, {_F2}, {_I1}, {_F1}, {_I1}, {_I1}, {_I1}, {_F2}, {_F2}, {_F2},'
-           f' {_F2}, {_F2})')  # fmt: skip
+@_compiled.helper
 def observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_starts,
                    last_rows, w, phi, grad, rows, f):  # fmt: skip
-    """:func:`~cloe_ros.core.estimator.observer_drift` in its order: ``f = A(Theta) zeta_hat +
+    """The observer's drift, as numpy computed it in order: ``f = A(Theta) zeta_hat +
     B(Theta) r`` (N, 12), the known rows one product each (``known_a`` times state
     ``known_c``), each block's last row ``Theta_b . phi_b`` summed as ``np.add.reduceat`` sums
-    it; fills ``w``, ``phi``, ``grad`` and ``rows`` as that function did."""
+    it; fills ``w``, ``phi`` (the regressors), ``grad`` (their products with ``theta``) and
+    ``rows``."""
     n_states, n_params = zeta_hat.shape[1], theta.shape[1]
     n_blocks = block_starts.shape[0]
     for n in range(zeta_hat.shape[0]):
@@ -667,11 +668,12 @@ def observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_
             f[n, i] = f[n, i] + add
 
 
-@_compiled(f'void({_F2}, {_F2}, {_F2}, {_F2}, float64, {_F2}, boolean, {_F2}, {_F2})')
+@_compiled.helper
 def observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, sliding, exponents, e):
-    """:func:`~cloe_ros.core.estimator.observer_update` in its order: with ``sliding``, the term
-    ``lambda_ |e|^exponents sign(e)`` added to ``f``; then ``zeta_hat+ = (zeta_hat + h (L zeta +
-    f)) / (1 + h L)``, in place."""
+    """The observer's step, shared by CLOE, CLOE-SM (:func:`cloe_step`) and cloe_iv
+    (:func:`iv_observer`), as numpy computed it, in order: with ``sliding``, the term ``lambda_
+    |e|^exponents sign(e)`` added to ``f``; then ``zeta_hat+ = (zeta_hat + h (L zeta + f)) /
+    (1 + h L)``, in place."""
     for n in range(zeta_hat.shape[0]):
         for i in range(zeta_hat.shape[1]):
             if sliding:
@@ -680,6 +682,41 @@ def observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, sliding, exponents, e
                 f[n, i] = f[n, i] + term * lambda_[n, i]
             step = (gain_l[n, i] * zeta[n, i] + f[n, i]) * h
             zeta_hat[n, i] = (zeta_hat[n, i] + step) / (gain_l[n, i] * h + 1.0)
+
+
+@_compiled(f'void({_F2}, {_F2}, {_F2}, {_F2}, {_F2}, float64, {_F2}, {_F2}, {_F2}, boolean, {_F2},'
+           f' {_F2}, boolean, {_I1}, {_F1}, {_I1}, {_I1}, {_I1}, {_I1}, {_F2}, {_F2}, {_F2},'
+           f' {_F2}, {_F2}, {_F2}, {_F2})')  # fmt: skip
+def cloe_step(zeta_hat, theta, gain_l, zeta, r, h, gamma_theta, gamma_l, lambda_, sliding,
+              exponents, gate, gated, known_c, known_a, regressor_index, block_starts, last_rows,
+              param_row, e, w, phi, grad, rows, f, tmp):  # fmt: skip
+    """:func:`~cloe_ros.core.estimator.cloe_step`, in place: the error ``e = zeta - zeta_hat``;
+    the drift (:func:`observer_drift`); the observer's step with, if ``sliding``, the
+    sliding-mode term (:func:`observer_update`); then the explicit Euler steps of the identifier
+    and of the adaptive gain with the error before the update, in numpy's order of the in-place
+    products they replaced: ``grad = ((e_last * phi) * gamma_theta) * h`` (times ``gate`` if
+    ``gated``), ``theta += grad``; ``tmp = ((e * e) * gamma_l) * h``, ``gain_l += tmp``."""
+    for n in range(zeta.shape[0]):
+        for i in range(zeta.shape[1]):
+            e[n, i] = zeta[n, i] - zeta_hat[n, i]
+    observer_drift(zeta_hat, theta, r, known_c, known_a, regressor_index, block_starts,
+                   last_rows, w, phi, grad, rows, f)  # fmt: skip
+    observer_update(zeta_hat, f, gain_l, zeta, h, lambda_, sliding, exponents, e)
+    for n in range(zeta.shape[0]):
+        for p in range(theta.shape[1]):
+            g = e[n, param_row[p]] * phi[n, p]
+            g = g * gamma_theta[n, p]
+            g = g * h
+            if gated:
+                g = g * gate[n, p]
+            grad[n, p] = g
+            theta[n, p] = theta[n, p] + g
+        for i in range(zeta.shape[1]):
+            t = e[n, i] * e[n, i]
+            t = t * gamma_l[n, i]
+            t = t * h
+            tmp[n, i] = t
+            gain_l[n, i] = gain_l[n, i] + t
 
 
 @_compiled(f'void({_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, {_F2}, float64, float64,'

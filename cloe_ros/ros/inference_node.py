@@ -229,7 +229,7 @@ class InferenceNode(Node):
             declared['diagnostics_period'], self.load.timed(self._diagnostics_if_due)
         )
         self._last_diag = (time.monotonic(), {v: 0 for v in self.vehicles})
-        self._diag_stamp_ns = self.get_clock().now().nanoseconds  # (node clock) of the last report
+        self._diag_stamp_ns = self.get_clock().now().nanoseconds  # the last report's (node clock)
         self._diag_poll = min(DIAGNOSTICS_POLL, 0.25 * declared['diagnostics_period'])
         self._diag_poll_at = time.monotonic() + self._diag_poll  # when the inputs next look
         self.create_service(Trigger, '~/reset', self._reset_service)
@@ -792,12 +792,14 @@ class InferenceNode(Node):
         calls it, and so do the inputs (:meth:`_input`): rclpy's EventsExecutor queues a timer's
         turn behind the messages already waiting, so a node behind its inputs, whose load is the
         news, would otherwise report seconds late and skip many periods."""
-        now_ns = self.get_clock().now().nanoseconds
-        since = now_ns - self._diag_stamp_ns
+        since = self.get_clock().now().nanoseconds - self._diag_stamp_ns
         if since >= DIAGNOSTICS_DUE * self._diag_period_ns or since < 0:
             self._publish_diagnostics()
 
     def _publish_diagnostics(self) -> None:
+        # stamped when it starts, so that the time a report of many vehicles takes to build does
+        # not shift the next one
+        stamp = self._diag_stamp_ns = self.get_clock().now().nanoseconds
         now = time.monotonic()
         t_prev, steps_prev = self._last_diag
         dt = max(now - t_prev, 1e-9)
@@ -815,8 +817,6 @@ class InferenceNode(Node):
             self.get_logger().info('keeps up with its inputs again')
         self._overloaded = bool(overload)
         statuses.append(self.node_status())
-        stamp = self.get_clock().now().nanoseconds
-        self._diag_stamp_ns = stamp
         self.diagnostics_pub.publish(encode_diagnostics(stamp, statuses))
 
 

@@ -93,13 +93,17 @@ def assert_same(got, want):
             np.testing.assert_allclose(a.prediction[1], b.prediction[1], rtol=1e-9, atol=1e-9)
 
 
-def test_vehicles_stepped_together_get_the_estimates_each_gets_alone(flight, monkeypatch):
-    vehicles = swarm(flight)
-    sizes = []
+def in_fleet(vehicles, monkeypatch, every: int = 1):
+    """Feed the vehicles' inputs to one fleet as a node receives them (:func:`merged`), a round
+    of the fleet after every ``every``-th input and one at the end, then finish each vehicle.
+    Returns the fleet, the estimates per vehicle, and the pool's steps as ``(keys, fed)``:
+    ``fed`` when the step ran while an input was fed, not in a round."""
+    steps = []
+    feeding = [False]
     step = EstimatorPool.step
 
     def counted(self, keys, *args):
-        sizes.append(len(keys))
+        steps.append((keys, feeding[0]))
         return step(self, keys, *args)
 
     monkeypatch.setattr(EstimatorPool, 'step', counted)
@@ -108,14 +112,24 @@ def test_vehicles_stepped_together_get_the_estimates_each_gets_alone(flight, mon
         fleet.add(VehicleEngine(config, name=name))
     out = {name: [] for name, _, _ in vehicles}
     for k, (name, kind, m) in enumerate(merged(vehicles)):
+        feeding[0] = True
         feed(fleet.engines[name], kind, m)
-        if k % 7 == 0:  # (inputs of several vehicles, and of several steps, between two rounds)
+        feeding[0] = False
+        if k % every == 0:
             for v, estimates in fleet.advance().items():
                 out[v] += estimates
     for v, estimates in fleet.advance().items():
         out[v] += estimates
     for name, engine in fleet.engines.items():
         out[name] += engine.finish()
+    return fleet, out, steps
+
+
+def test_vehicles_stepped_together_get_the_estimates_each_gets_alone(flight, monkeypatch):
+    vehicles = swarm(flight)
+    # (inputs of several vehicles, and of several steps, between two rounds)
+    fleet, out, steps = in_fleet(vehicles, monkeypatch, every=7)
+    sizes = [len(keys) for keys, _ in steps]
     want = alone(vehicles)
     for name, _, _ in vehicles:
         assert_same(out[name], want[name])
@@ -262,28 +276,8 @@ def test_the_steps_left_at_a_time_jump_run_out_of_the_pool(flight, monkeypatch):
     holed = [(kind, m) for kind, m in seq if m.stamp_ns < cut
              or (kind == 'odom' and m.stamp_ns < cut + NS // 2) or m.stamp_ns >= cut + 5 * NS // 2]
     vehicles = [('/a', WAITS, seq), ('/b', WAITS, holed)]
-    pooled = []  # the pool's steps while an input is fed (not in a round of the fleet)
-    feeding = [False]
-    step = EstimatorPool.step
-
-    def counted(self, keys, *args):
-        if feeding[0]:
-            pooled.append(keys)
-        return step(self, keys, *args)
-
-    monkeypatch.setattr(EstimatorPool, 'step', counted)
-    fleet = Fleet()
-    for name, config, _ in vehicles:
-        fleet.add(VehicleEngine(config, name=name))
-    out = {name: [] for name, _, _ in vehicles}
-    for name, kind, m in merged(vehicles):
-        feeding[0] = True
-        feed(fleet.engines[name], kind, m)
-        feeding[0] = False
-        for v, estimates in fleet.advance().items():
-            out[v] += estimates
-    for name, engine in fleet.engines.items():
-        out[name] += engine.finish()
+    fleet, out, steps = in_fleet(vehicles, monkeypatch)
+    pooled = [keys for keys, fed in steps if fed]  # the pool's steps while an input was fed
     want = alone(vehicles)
     for name, _, _ in vehicles:
         assert_same(out[name], want[name])

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -962,8 +962,6 @@ class Anticipator:
         self, config: AnticipationConfig, step: float, n_poses: int, rate: float,
         prediction_rate: float, ground_altitude: float,
     ) -> None:  # fmt: skip
-        from dataclasses import replace
-
         self.config = replace(config, ground_altitude=ground_altitude)
         self.step = step
         self.poses = step * np.arange(1, n_poses + 1)  # pose offsets
@@ -987,6 +985,12 @@ class Anticipator:
         self._frozen: list[tuple | None] = [None] * 4  # per channel: (since, theta, coupling)
         self._judge_key: bytes | None = None
         self._judge: tuple[np.ndarray, np.ndarray] | None = None
+
+    def set_ground_altitude(self, ground_altitude: float) -> None:
+        """Take the estimator's new ``ground_altitude`` (the node changes it while it runs): the
+        reference trust reads it at the next commanded altitude."""
+        self.config = replace(self.config, ground_altitude=ground_altitude)
+        self.trust.config = self.config
 
     def clear(self) -> None:
         """Forget everything (a time jump or a reset)."""

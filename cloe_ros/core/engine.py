@@ -44,6 +44,12 @@ than ``max_gap`` after the previous one and ahead of the odometry: they are take
 jumps back to their timeline (or catches up with them), and rejected as ``reference stamp
 outlier`` when the next reference does not continue them. A latched reference of a restarted
 source, published before its odometry, is so kept for the new timeline.
+
+One input without the other. Odometry that no reference pairs with yet (before the estimator
+starts) and references ahead of the odometry (a vehicle whose odometry stopped) are kept for
+``UNPAIRED_SPAN_NS`` (or twice ``max_gap``, if longer) back from the newest of them, with the last
+one before that span; older ones are dropped unused, so a vehicle that streams one input for
+hours holds a bounded memory. An estimator that starts then starts on the inputs kept.
 """
 
 from __future__ import annotations
@@ -120,6 +126,9 @@ ROUNDOFF = 1e-12
 REFERENCE_DUE = 0.9
 #: References held aside at most (100 s at 100 Hz), waiting for the odometry to follow them.
 MAX_HELD_REFERENCES = 10_000
+#: How far back from the newest one the inputs of one stream are kept while the other stream does
+#: not pair with them (module docstring, "One input without the other"): 10 s.
+UNPAIRED_SPAN_NS = 10 * NS
 
 
 @dataclass(frozen=True)
@@ -286,6 +295,13 @@ def _near(position, previous, dt_ns: int) -> bool:
     return dx * dx + dy * dy + dz * dz <= reach * reach
 
 
+def _drop_unpaired(queue: deque, before_ns: int) -> None:
+    """Drop the inputs of ``queue`` (stamp, value), in stamp order, that precede the last one
+    stamped at or before ``before_ns``."""
+    while len(queue) > 1 and queue[1][0] <= before_ns:
+        queue.popleft()
+
+
 #: Numerical failures of a step (the estimator restarts, counted as ``diverged``).
 NUMERICAL_FAILURES = (ArithmeticError, np.linalg.LinAlgError)
 
@@ -389,6 +405,8 @@ class VehicleEngine:
         self._rejected_stamps: deque[int] = deque(maxlen=MAX_REJECTED_STAMPS)
         self._ref_interval_ns: float | None = None  # typical reference interval
         self._frame_learnt = False  # the frame was learnt from an input (not configured)
+        self._frame_open = False  # a learnt frame the next input may set anew (after a reset)
+        self._unpublished_gap = False  # the next odometry gap is a silence (odometry_unpublished)
         self._other_frames: list[str] = []  # frames of the inputs refused in a row since
         self._held_refs: deque[tuple[int, np.ndarray]] = deque()  # references off the timeline
         self._held_refs_backward = False  # held for being behind it (else: ahead of it)
@@ -418,6 +436,12 @@ class VehicleEngine:
             self._frame, self._frame_learnt = frame_id, True
             self._other_frames.clear()
             return None
+        if self._frame_open:  # (after a reset: this input sets the frame)
+            self._frame_open = False
+            if frame_id != self._frame:
+                self._drop_inputs()
+                self._frame = frame_id
+            return None
         if frame_id == self._frame:
             self._other_frames.clear()
             return None
@@ -437,15 +461,19 @@ class VehicleEngine:
         self._other_frames.clear()
         self.stats.frames_relearnt += 1
         self._stop_estimator()
+        self._drop_inputs()
+        self._model = None
+        self._rejections.append(Rejection(
+            'world frame learnt again', f'{old!r} was an outlier: the inputs are in {frame_id!r}'))
+
+    def _drop_inputs(self) -> None:
+        """Forget the inputs not yet stepped (those of another frame)."""
         self._odom.clear()
         self._refs.clear()
         self._plan = None
         self._held_odom = None
         self._held_refs.clear()
-        self._model = None
         self._anchor_ns, self._anchor_exact = None, False
-        self._rejections.append(Rejection(
-            'world frame learnt again', f'{old!r} was an outlier: the inputs are in {frame_id!r}'))
 
     def _reject(self, reason: str, detail: str = '') -> Rejection:
         rejection = Rejection(reason, detail)
@@ -550,6 +578,12 @@ class VehicleEngine:
         self._accept_odometry(sample)
         return None
 
+    def odometry_unpublished(self) -> None:
+        """Nothing publishes the vehicle's odometry now (the node sees it in the ROS graph): the
+        gap before the next odometry is a silence, not samples lost."""
+        if self._odom:
+            self._unpublished_gap = True
+
     def _count_missing(self, previous_ns: int, stamp_ns: int) -> None:
         """Count the samples missing between two accepted stamps of a regular stream: those that
         never arrived, wherever they were lost (in DDS, in a subscription's queue while the node
@@ -562,15 +596,17 @@ class VehicleEngine:
         a node that falls behind from its first message sees only holes at first. A confirmed
         jump ahead counts too: DDS does not report what a full history overwrites, so a long run
         lost there reads only as a jump of the stamps (a clock set ahead reads the same way;
-        ``time_jumps`` counts those). A jump back counts nothing."""
+        ``time_jumps`` counts those). A jump back counts nothing, nor does the gap over which
+        nothing published the odometry (:meth:`odometry_unpublished`)."""
         dt = stamp_ns - previous_ns
+        unpublished, self._unpublished_gap = self._unpublished_gap, False
         inside = 0
         if self._rejected_stamps:
             inside = sum(previous_ns < s < stamp_ns for s in self._rejected_stamps)
             self._rejected_stamps = deque(
                 (s for s in self._rejected_stamps if s >= stamp_ns), maxlen=MAX_REJECTED_STAMPS
             )
-        if dt <= 0:
+        if dt <= 0 or unpublished:
             return
         gaps, ordered = self._gaps, self._gaps_sorted
         if len(gaps) == gaps.maxlen:
@@ -597,6 +633,11 @@ class VehicleEngine:
             return gap
         return min(gap, max(MIN_HELD_GAP, HELD_INTERVALS * interval_ns))
 
+    @property
+    def _unpaired_span_ns(self) -> int:
+        """How far back from the newest one the inputs of one stream are kept unpaired."""
+        return max(UNPAIRED_SPAN_NS, 2 * round(self.config.max_gap * NS))
+
     def _hold(self, sample: OdometrySample, kind: str) -> None:
         self._held_odom, self._held_kind = sample, kind
         return None
@@ -620,6 +661,8 @@ class VehicleEngine:
         if self._odom:
             self._count_missing(self._odom[-1][0], sample.stamp_ns)
         self._odom.append((sample.stamp_ns, zeta))
+        if self._est is None:  # (a running estimator drops the odometry it has stepped past)
+            _drop_unpaired(self._odom, sample.stamp_ns - self._unpaired_span_ns)
         self.stats.odom_accepted += 1
         held = self._held_refs
         if held and not self._held_refs_backward:
@@ -689,6 +732,7 @@ class VehicleEngine:
             self._ref_interval_ns = dt if self._ref_interval_ns is None else (
                 self._ref_interval_ns + 0.05 * (dt - self._ref_interval_ns))  # fmt: skip
         self._refs.append(entry)
+        _drop_unpaired(self._refs, stamp - self._unpaired_span_ns)
         self.stats.reference_accepted += 1
         return None
 
@@ -799,10 +843,12 @@ class VehicleEngine:
 
     def reset(self) -> None:
         """Forget the identified model and re-initialise at the next step (inputs are kept). A
-        world frame learnt from the inputs is forgotten too: the next input sets it again."""
+        world frame learnt from the inputs is open again: the estimates of the inputs kept are
+        in it, and the next input sets it; one in another frame drops the inputs kept (they were
+        in the old frame)."""
         self.stats.resets += 1
         if self._frame_learnt:
-            self._frame, self._frame_learnt = None, False
+            self._frame_open = True
             self._other_frames.clear()
         self._forget_model()
 
@@ -834,6 +880,8 @@ class VehicleEngine:
         if config == old:
             return
         self.config = replace(self.config, estimator=config)
+        if self._anticipator is not None and config.ground_altitude != old.ground_altitude:
+            self._anticipator.set_ground_altitude(config.ground_altitude)
         iv = config.algorithm == 'cloe_iv'
         if config.algorithm != old.algorithm or (iv and config.identifier != old.identifier):
             self.stats.resets += 1  # (a restart the user asked for; the frame is kept)

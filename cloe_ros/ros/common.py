@@ -428,9 +428,12 @@ def check_vehicles(vehicles: Iterable[str]) -> list[str]:
                 '_ and /)',
                 'vehicles',
             )
-        if v[0].isdigit() or (v.startswith('/') and len(v) > 1 and v[1].isdigit()):
+        digit = next((t for t in v.split('/') if t[:1].isdigit()), None)
+        if digit is not None:  # (ROS refuses a name token that starts with a digit)
             raise ParameterError(
-                f'vehicle namespace {v!r} must not start with a digit', 'vehicles'
+                f'vehicle namespace {v!r} must not start with a digit'
+                + ('' if v.lstrip('/').startswith(digit) else f' (nor any part of it: {digit!r})'),
+                'vehicles',
             )
         out.append(v.rstrip('/'))
     if len(set(out)) != len(out):

@@ -16,7 +16,8 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
   ``<ns>/<output_ns>/parameters`` (std_msgs/Float64MultiArray, labelled) at ``parameters_rate`` and
   ``<ns>/<output_ns>/prediction`` (nav_msgs/Path, poses at future stamps) at ``prediction_rate``;
 * publishes ``/diagnostics`` every ``diagnostics_period`` (on its timer, or from its inputs when
-  the timer's turn is held up behind them: a node behind its inputs still reports on time) and
+  the timer's turn is held up behind them, a tenth of a period overdue: a node behind its inputs
+  still reports about on time) and
   serves ``~/reset`` (std_srvs/Trigger).
 """
 
@@ -82,9 +83,11 @@ STALE_AFTER = 2.0
 #: :class:`Load`.
 BUSY_WARN = 0.8
 LATE_WARN = 0.5
-#: A /diagnostics report is due once this share of ``diagnostics_period`` (node clock) has passed
-#: since the last one (less than all of it, so that the timer's jitter does not skip a period).
-DIAGNOSTICS_DUE = 0.9
+#: The diagnostics timer publishes a report once this share of ``diagnostics_period`` (node clock)
+#: has passed since the last one (less than all of it, so that the timer's jitter does not skip a
+#: period); the inputs publish it once this other share has passed (more than all of it: the
+#: timer's turn is held up behind them).
+DIAGNOSTICS_DUE, DIAGNOSTICS_OVERDUE = 0.9, 1.1
 #: The inputs look whether a report is due at most this often, s of wall time (and at most four
 #: times a ``diagnostics_period``).
 DIAGNOSTICS_POLL = 0.1
@@ -205,6 +208,7 @@ class InferenceNode(Node):
         self._missing: dict[str, list[str]] = {}
         self._missing_since: dict[str, float] = {}
         self._warned_missing: set[str] = set()
+        self._hinted: set[str] = set()  # of those, the ones warned with the hint of the others
         self._discovered: set[str] = set()
         # the vehicles whose cloe/state something else publishes too (another node's shard)
         self._doubled: set[str] = set()
@@ -435,15 +439,22 @@ class InferenceNode(Node):
             self._check_doubled(v)
             ns = self.vehicle_ns[v]
             missing = self._missing[v] = self._missing_inputs(ns)
+            if 'odom' in missing:
+                self.engines[v].odometry_unpublished()
             if not missing:
                 self._missing_since.pop(v, None)
+                self._hinted.discard(v)
                 if v in self._warned_missing:
                     self._warned_missing.discard(v)
                     self.get_logger().info(f'{ns}: odom and reference are published again')
                 continue
             since = self._missing_since.setdefault(v, now)
-            if now - since < self.publisher_timeout or v in self._warned_missing:
+            if now - since < self.publisher_timeout:
                 continue
+            if v in self._warned_missing:
+                # (namespaced vehicles that took off after the warning: its hint, once)
+                if v in self._hinted or not self._flying_elsewhere(ns, topics):
+                    continue
             self._warned_missing.add(v)
             self.get_logger().warning(self._missing_warning(v, missing, now - since, topics))
 
@@ -476,20 +487,28 @@ class InferenceNode(Node):
         text = f'{ns}: nothing publishes {what} (for {for_s:.0f} s)'
         if v in self._discovered:
             return text + ': the vehicle fell silent'
-        flying = [n for n in graph_namespaces(topics)
-                  if n != ns and not self._missing_inputs(n)]  # fmt: skip
-        if not self.listed and not self.discover and flying:
+        flying = self._flying_elsewhere(ns, topics)
+        if flying:
+            self._hinted.add(v)
             shown = ', '.join(flying[:5]) + (', ...' if len(flying) > 5 else '')
             return (
                 f'{text}; odom and reference are published under {shown}: set '
                 f'vehicles:=[{", ".join(flying)}] or discover:=true'
             )
+        given = (f'vehicles: [{", ".join(self.listed)}]' if self.listed
+                 else 'no vehicles:=[...] given')  # fmt: skip
         return text + (
-            f'; is {ns} the namespace of a vehicle that flies? (vehicles: '
-            f'[{", ".join(self.listed)}]'
+            f'; is {ns} the namespace of a vehicle that flies? ({given}'
             + ('' if self.discover else '; discover:=true takes the namespaces that publish')
             + ')'
         )
+
+    def _flying_elsewhere(self, ns: str, topics) -> list[str]:
+        """With no ``vehicles`` list and no discovery: the other namespaces that publish odom
+        and reference (the vehicles the user likely meant), else []."""
+        if self.listed or self.discover:
+            return []
+        return [n for n in graph_namespaces(topics) if n != ns and not self._missing_inputs(n)]
 
     # -------------------------------------------------------------------------- callbacks
 
@@ -598,7 +617,7 @@ class InferenceNode(Node):
         Also publishes /diagnostics if a report is due (:meth:`_diagnostics_if_due`)."""
         if time.monotonic() >= self._diag_poll_at:
             self._diag_poll_at = time.monotonic() + self._diag_poll
-            self._diagnostics_if_due()
+            self._diagnostics_if_due(DIAGNOSTICS_OVERDUE)
         if self._batch_timer is None:
             self._publish_all(self.fleet.advance([vehicle]))
         else:
@@ -786,14 +805,15 @@ class InferenceNode(Node):
         return '; '.join(words) + (', states come late or are missed (fewer vehicles per node: '
                                    'shard_count)')  # fmt: skip
 
-    def _diagnostics_if_due(self) -> None:
-        """Publish /diagnostics if ``DIAGNOSTICS_DUE`` of a ``diagnostics_period`` of the node's
-        clock has passed since the last report (or its clock went back). The diagnostics timer
-        calls it, and so do the inputs (:meth:`_input`): rclpy's EventsExecutor queues a timer's
-        turn behind the messages already waiting, so a node behind its inputs, whose load is the
-        news, would otherwise report seconds late and skip many periods."""
+    def _diagnostics_if_due(self, share: float = DIAGNOSTICS_DUE) -> None:
+        """Publish /diagnostics if ``share`` of a ``diagnostics_period`` of the node's clock has
+        passed since the last report (or its clock went back). The diagnostics timer calls it
+        (``DIAGNOSTICS_DUE``), and so do the inputs (:meth:`_input`, ``DIAGNOSTICS_OVERDUE``):
+        rclpy's EventsExecutor queues a timer's turn behind the messages already waiting, so a
+        node behind its inputs, whose load is the news, would otherwise report seconds late and
+        skip many periods."""
         since = self.get_clock().now().nanoseconds - self._diag_stamp_ns
-        if since >= DIAGNOSTICS_DUE * self._diag_period_ns or since < 0:
+        if since >= share * self._diag_period_ns or since < 0:
             self._publish_diagnostics()
 
     def _publish_diagnostics(self) -> None:

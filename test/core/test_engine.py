@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cloe_ros.core.algorithms import make_estimator
-from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
+from cloe_ros.core.engine import NS, UNPAIRED_SPAN_NS, EngineConfig, VehicleEngine
 from cloe_ros.core.estimator import (
     SM_GAINS_TABLE1,
     CloeEstimator,
@@ -304,6 +304,27 @@ def test_reset_forgets_the_model_and_reinitialises(flight):
     assert after[0].stamp_ns == out[-1].stamp_ns + NS // 100
 
 
+def test_after_a_reset_the_inputs_kept_are_in_the_frame_they_came_in(flight):
+    """The estimates of inputs that wait across a reset are in the frame those inputs came in;
+    the next input sets the frame, and one in another frame drops them."""
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)
+    engine = VehicleEngine(EngineConfig())
+    run(engine, seq[:600])
+    for kind, sample in seq[600:606]:  # (inputs of a batch not stepped yet)
+        (engine.add_odometry if kind == 'odom' else engine.add_reference)(sample)
+    engine.reset()
+    assert engine.advance() and engine.world_frame == 'world'
+    # a source restarted in another frame: the inputs still waiting are dropped
+    for kind, sample in seq[606:612]:
+        (engine.add_odometry if kind == 'odom' else engine.add_reference)(sample)
+    engine.reset()
+    moved = [(k, replace(m, frame_id='map')) for k, m in seq[612:700]]
+    out = run(engine, moved)
+    assert engine.world_frame == 'map' and not engine.stats.rejected
+    assert out and out[0].stamp_ns >= moved[0][1].stamp_ns
+
+
 @pytest.mark.parametrize(
     'kwargs, message',
     [
@@ -353,6 +374,20 @@ def test_new_observer_gains_keep_the_identifiers_state(flight):
     restarted = run(engine, seq[2000:2100])
     assert restarted[0].stamp_ns == after[-1].stamp_ns + NS // 100
     assert engine._est.identifier.config.window == 30.0
+
+
+def test_a_new_ground_altitude_applies_to_the_predictions_too(flight):
+    """``ground_altitude`` applies at once (the node's runtime setting): to the identifier, and
+    to the reference trust of the predictions, as in an engine started with it."""
+    odoms, refs = messages(flight)
+    seq = in_time_order(odoms, refs)
+    engine, _ = _iv_engine(seq[:600])
+    twin, _ = _iv_engine(seq[:600], ground_altitude=5.0)  # (the flight is below 5 m)
+    assert engine._anticipator.trust.status().reasons[0] != 'commanded to the ground'
+    engine.update_estimator(replace(engine.config.estimator, ground_altitude=5.0))
+    run(engine, seq[600:700]), run(twin, seq[600:700])
+    for e in (engine, twin):
+        assert e._anticipator.trust.status().reasons == ('commanded to the ground',) * 4
 
 
 def test_an_unchanged_estimator_config_changes_nothing(flight):
@@ -614,3 +649,34 @@ def test_a_restart_whose_references_come_first_keeps_them(flight):
     np.testing.assert_array_equal(
         np.array([e.reference for e in after]), np.array([e.reference for e in alone])
     )
+
+
+def test_one_input_without_the_other_is_kept_for_a_bounded_span(flight):
+    """Odometry with no reference yet, and references whose odometry stopped, are kept for
+    UNPAIRED_SPAN_NS back from the newest (the memory of a vehicle streaming one input stays
+    bounded); an estimator that starts then gives what it gives on the inputs kept."""
+    odoms, refs = messages(flight)  # 100 Hz odometry, 50 Hz references, 20 s
+    late = [(s, m) for s, m in refs if s >= T0 + 15 * NS]  # no reference for 15 s
+    engine = VehicleEngine(EngineConfig())
+    run(engine, [('odom', m) for s, m in odoms if s < late[0][0]])
+    assert not engine.started
+    assert len(engine._odom) == UNPAIRED_SPAN_NS // (NS // 100) + 1  # not the 1500 received
+    got = run(engine, in_time_order([(s, m) for s, m in odoms if s >= late[0][0]], late))
+    kept = [(s, m) for s, m in odoms if s >= late[0][0] - UNPAIRED_SPAN_NS]
+    fresh = VehicleEngine(EngineConfig())
+    want = run(fresh, in_time_order(kept, late))
+    got, want = got + engine.finish(), want + fresh.finish()
+    assert got and got[0].stamp_ns == late[0][0]
+    assert [e.stamp_ns for e in got] == [e.stamp_ns for e in want]
+    for name in ('zeta_hat', 'theta_hat', 'reference'):  # (the same to round-off: the yaw is
+        np.testing.assert_allclose(  # unwrapped from other samples, the identifier amplifies it)
+            np.array([getattr(e, name) for e in got]), np.array([getattr(e, name) for e in want]),
+            rtol=1e-8, atol=1e-12, err_msg=name)  # fmt: skip
+
+    # the odometry stops after 5 s, the references go on for 15 s
+    engine = VehicleEngine(EngineConfig())
+    out = run(engine, in_time_order(odoms[:500], [(s, m) for s, m in refs if s < odoms[500][0]]))
+    run(engine, [('ref', m) for s, m in refs if s >= odoms[500][0]])
+    assert engine.started and out
+    assert len(engine._refs) <= UNPAIRED_SPAN_NS // (NS // 50) + 1  # not the 750 received
+    assert engine._refs[-1][0] == refs[-1][0]

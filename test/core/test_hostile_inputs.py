@@ -230,6 +230,24 @@ def test_samples_missing_from_a_regular_stream_are_counted(flight):
     assert not engine.stats.rejected
 
 
+@pytest.mark.parametrize('silence', [0.5, 3.0])  # s: a gap, and a time jump
+def test_a_silence_the_graph_showed_is_not_missing_samples(flight, silence):
+    """A gap over which nothing published the odometry (the node saw it in the ROS graph and
+    said so, odometry_unpublished) counts no missing sample; the same gap unannounced does."""
+    odoms, refs = messages(flight)
+    cut = round(100 * silence)
+    counted = {}
+    for announced in (False, True):
+        engine = VehicleEngine(EngineConfig())
+        run(engine, in_time_order(odoms[:300], refs[:150]))
+        if announced:
+            engine.odometry_unpublished()
+        run(engine, in_time_order(odoms[300 + cut:700], refs[150 + cut // 2:350]))
+        engine.finish()
+        counted[announced] = engine.stats.odom_missing
+    assert counted == {False: cut, True: 0}
+
+
 def test_a_sample_that_arrived_and_was_rejected_is_not_missing(flight):
     """Received and missing add up to what was sent: a sample rejected (NaN) between two
     accepted ones, or held aside alone between two long holes and rejected as a stamp outlier

@@ -345,6 +345,36 @@ def test_no_list_while_namespaced_vehicles_fly_gives_a_hint(context, capfd):
             n.destroy_node()
 
 
+def test_no_list_gives_the_hint_when_the_vehicles_take_off_after_the_warning(context, capfd):
+    """A node started with no list before the vehicles fly warns that nothing publishes /odom;
+    when namespaced vehicles take off later, it says so too (once), with the hint."""
+    inf = _inference(context, discovery_period=0.1, publisher_timeout=0.5)
+    helper = rclpy_node(context)
+    ex = _executor(context, inf, helper)
+    pubs = []
+    try:
+        text = ''
+
+        def logged(words: str) -> bool:
+            nonlocal text
+            text += capfd.readouterr().err
+            return words in text
+
+        assert spin_until(ex, lambda: logged('no vehicles:=[...] given'), 30), text
+        assert 'nothing publishes /odom and /reference' in text and 'uav' not in text
+        pubs = _vehicle_publishers(helper, '/uav1') + _vehicle_publishers(helper, '/uav2')
+        hint = 'set vehicles:=[/uav1, /uav2] or discover:=true'
+        assert spin_until(ex, lambda: logged(hint), 30), text
+        spin_until(ex, lambda: False, 1.0)  # (more polls of the graph: no second hint)
+        logged('')
+        assert text.count(hint) == 1, text
+    finally:
+        ex.shutdown()
+        del pubs
+        for n in (inf, helper):
+            n.destroy_node()
+
+
 def test_discovery_takes_up_vehicles_that_appear_and_reports_those_that_fall_silent(context):
     inf = _inference(context, discover=True, discovery_period=0.1, publisher_timeout=0.5)
     helper = rclpy_node(context)

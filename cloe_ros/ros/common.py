@@ -395,6 +395,13 @@ def vehicle_topic(vehicle: str, name: str) -> str:
     return f'{vehicle}/{name}' if vehicle else name
 
 
+def incompatible_policy(kind) -> str:
+    """The name of the QoS policy of an incompatible-QoS event (``reliability``, ``durability``,
+    ...), from rclpy's ``last_policy_kind`` (``rmw_qos_policy_kind_t.RMW_QOS_POLICY_...``)."""
+    name = getattr(kind, 'name', None) or str(kind)
+    return name.rsplit('.', 1)[-1].removeprefix('RMW_QOS_POLICY_').lower()
+
+
 def resolved_namespace(node, vehicle: str) -> str:
     """The absolute namespace of ``vehicle`` (an entry of ``vehicles``) in ``node``'s namespace,
     '/' for the root: where its topics are."""

@@ -56,6 +56,7 @@ from cloe_ros.ros.common import (
     declare,
     describe,
     destroyed_if_init_fails,
+    incompatible_policy,
     qos,
     refuse,
     resolved_namespace,
@@ -372,7 +373,7 @@ class InferenceNode(Node):
         }
         for name, (msgtype, callback) in callbacks.items():
             events = SubscriptionEventCallbacks(
-                incompatible_qos=self._incompatible_qos(v),
+                incompatible_qos=self._incompatible_qos(vehicle_topic(v, name)),
                 message_lost=functools.partial(self._on_lost, v, name),
             )
             self.create_subscription(
@@ -582,13 +583,15 @@ class InferenceNode(Node):
                 'in /diagnostics'
             )
 
-    def _incompatible_qos(self, vehicle: str):
+    def _incompatible_qos(self, topic: str):
         def callback(event) -> None:
+            policy = incompatible_policy(event.last_policy_kind)
             self.get_logger().warning(
-                f'{vehicle or "/"}: a publisher offers an incompatible QoS '
-                f'({event.last_policy_kind}); for best-effort sensors set '
-                'qos_reliability:=best_effort'
-            )
+                f'{self.resolve_topic_name(topic)}: a publisher offers a QoS incompatible with '
+                f'the subscription ({policy})'
+                + ('; for a best-effort publisher set qos_reliability:=best_effort'
+                   if policy == 'reliability' else '')
+            )  # fmt: skip
 
         return callback
 

@@ -375,6 +375,33 @@ def test_no_list_gives_the_hint_when_the_vehicles_take_off_after_the_warning(con
             n.destroy_node()
 
 
+def test_a_best_effort_publisher_is_named_with_the_setting_that_matches_it(context, capfd):
+    """A reliable subscription matches no best-effort publisher: the node names the topic, the
+    policy in words and the setting that fixes it."""
+    inf = _inference(context, vehicles=['/uav1'])
+    helper = rclpy_node(context)
+    offered = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    pub = helper.create_publisher(Odometry, '/uav1/odom', offered)
+    ex = _executor(context, inf, helper)
+    try:
+        text = ''
+
+        def warned() -> bool:
+            nonlocal text
+            text += capfd.readouterr().err
+            return 'incompatible' in text
+
+        assert spin_until(ex, warned, 30), text
+        assert ('/uav1/odom: a publisher offers a QoS incompatible with the subscription '
+                '(reliability); for a best-effort publisher set qos_reliability:=best_effort'
+                in text), text  # fmt: skip
+    finally:
+        ex.shutdown()
+        del pub
+        for n in (inf, helper):
+            n.destroy_node()
+
+
 def test_discovery_takes_up_vehicles_that_appear_and_reports_those_that_fall_silent(context):
     inf = _inference(context, discover=True, discovery_period=0.1, publisher_timeout=0.5)
     helper = rclpy_node(context)

@@ -10,27 +10,31 @@ in Python), then by one ``cloe_inference`` node (this checkout's package, cloe_i
 listing them, ``reference_timeout`` 5 s instead of the default 0.25 s, as in every run of
 EVALUATION.md; ``--param NAME:=VALUE``, repeatable, sets another of its parameters, these two
 included). A node that exits (a parameter it refuses) stops the benchmark with its error. Printed
-per run: messages received of those sent, CPU time of the receiving process per message (from
-/proc), and for the node the share of the odometry that became a published ``cloe/state`` and the
-latency of the states of every vehicle (wall clock at reception minus stamp, p50 and p99, over all
-the states received; until 2026-12-06 it was the first vehicle's alone, which the node steps and
-publishes first of a batch), and what the node says of its load in /diagnostics: how many reports
-it published, the largest ``busy`` (the share of wall time in its callbacks; WARN from 0.8) and the
-largest ``late_s`` (how long after its deadline its steady timer ran; WARN from 0.5 s). Speeds
-depend on the machine and its load: compare the node's column with the floor's in the same run
-(EVALUATION.md, section 4). Uses ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits the
-vehicles over K nodes (``shard_index`` / ``shard_count``, each its own process, as across hosts):
-the node's columns are then the K nodes together (CPU summed, the largest ``busy`` and ``late_s``
-of any). ``--relay`` also runs, under the same load, a node that only receives and publishes each
-odometry message back as the vehicle's ``cloe/state`` (no estimation): what an inference node whose
-engine cost nothing would deliver, and its CPU per message; then that relay publishing the node's
-other outputs too (parameters, named parameters, prediction, its radius and markers, real bytes at
-the default rates): what the node's output contract alone costs on DDS.
+per run: messages received of those sent, CPU time of the receiving process per message sent (from
+/proc; every receiver's is divided by the messages sent, the same load, so that one that misses
+messages does not look cheaper), and for the node the share of the odometry that became a published
+``cloe/state`` and the latency of the states of every vehicle (wall clock at reception minus stamp,
+p50 and p99, over all the states received; until 2026-12-06 it was the first vehicle's alone, which
+the node steps and publishes first of a batch), and what the node says of its load in /diagnostics:
+how many reports it published (with ``--shards``, the sum over the shards), the largest ``busy``
+(the share of wall time in its callbacks; WARN from 0.8) and the largest ``late_s`` (how long after
+its deadline its steady timer ran; WARN from 0.5 s). Speeds depend on the machine and its load:
+compare the node's column with the floor's in the same run (EVALUATION.md, section 4). Uses
+ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits the vehicles over K nodes
+(``shard_index`` / ``shard_count``, each its own process, as across hosts): the node's columns are
+then the K nodes together (CPU and reports summed, the largest ``busy`` and ``late_s`` of any).
+``--relay`` also runs, under the same load, a node that only receives and publishes each odometry
+message back as the vehicle's ``cloe/state`` (no estimation): what an inference node whose engine
+cost nothing would deliver, and its CPU per message; then that relay publishing the node's other
+outputs too (parameters, named parameters, prediction, its radius and markers, real bytes at the
+default rates): what the node's output contract alone costs on DDS.
 
     .venv/bin/python scripts/swarm_benchmark.py --offline bags/position [--repeat 3]
 
-``cloe infer`` on a bag beside the I/O floor: reading, decoding and rewriting the same bag with
-rosbags (AnyReader, deserialize, serialize, Writer), CPU seconds of each, median of the repeats.
+``cloe infer --jobs 1`` on a bag beside the I/O floor: reading, decoding and rewriting the same
+bag with rosbags (AnyReader, deserialize, serialize, Writer), CPU seconds of each, median of the
+repeats. ``--jobs 1`` because the target is one vehicle in one process: by default ``cloe infer``
+splits a bag of several vehicles over processes, which costs CPU of its own.
 """
 
 from __future__ import annotations
@@ -414,15 +418,17 @@ def offline(bag: Path, repeat: int) -> None:
                 cmd = ([sys.executable, __file__, '_io_floor', str(bag), str(out)]
                        if what == '_io_floor'
                        else [sys.executable, '-m', 'cloe_ros.cli.main', 'infer', '-q', str(bag),
-                             '-o', str(out)])  # fmt: skip
+                             '-o', str(out), '--jobs', '1'])  # fmt: skip
                 before = os.times()
                 subprocess.run(cmd, env=env, check=True, capture_output=True)
                 after = os.times()
                 times.append(after.children_user + after.children_system
                              - before.children_user - before.children_system)  # fmt: skip
     f, i = statistics.median(floor_s), statistics.median(infer_s)
-    print(f'| `cloe infer` {bag.name} | I/O floor (rosbags read, decode, encode, write) '
-          f'{f:.2f} s CPU | cloe infer {i:.2f} s CPU | {i / f:.1f}x |')
+    print(
+        f'| `cloe infer --jobs 1` {bag.name} | I/O floor (rosbags read, decode, encode, write) '
+        f'{f:.2f} s CPU | cloe infer {i:.2f} s CPU | {i / f:.1f}x |'
+    )
 
 
 def main() -> int:
@@ -440,7 +446,12 @@ def main() -> int:
     parser.add_argument('--duration', type=float, default=20.0)
     parser.add_argument('--offline', type=Path, metavar='BAG',
                         help='instead: cloe infer on BAG beside the I/O floor')
-    parser.add_argument('--repeat', type=int, default=3)
+    parser.add_argument(
+        '--repeat',
+        type=int,
+        default=3,
+        help='with --offline: runs of each, the median printed (default: 3)',
+    )
     parser.add_argument('--batch-period', type=float, default=None,
                         help="the node's batch_period, s (default: the node's default)")
     parser.add_argument('--qos-depth', type=int, default=None,
@@ -464,6 +475,10 @@ def main() -> int:
     args = parser.parse_args()
     if args.shards < 1:
         parser.error(f'--shards must be at least 1, got {args.shards}')
+    if args.repeat < 1:
+        parser.error(f'--repeat must be at least 1, got {args.repeat}')
+    if args.offline and not args.offline.exists():
+        parser.error(f'--offline {args.offline} does not exist')
     if args.offline:
         offline(args.offline, args.repeat)
         return 0
@@ -473,14 +488,17 @@ def main() -> int:
     params = [f'{name}:={value}' for name, value in (
         ('batch_period', args.batch_period), ('qos_depth', args.qos_depth),
         ('qos_reliability', args.qos_reliability)) if value is not None] + args.param  # fmt: skip
-    print('| vehicles | do-nothing subscriber: received, CPU per message | cloe_inference: '
-          'states of odometry, CPU per message, ratio to the floor, latency p50 / p99 | '
-          "the node's /diagnostics: reports, busy (max), late_s (max) |")
+    reports = 'reports (summed over the shards)' if args.shards > 1 else 'reports'
+    print(
+        '| vehicles | do-nothing subscriber: received, CPU per message sent | cloe_inference: '
+        'states of odometry, CPU per message sent, ratio to the floor, latency p50 / p99 | '
+        f"the node's /diagnostics: {reports}, busy (max), late_s (max) |"
+    )
     print('|---|---|---|---|')
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.vehicles:
             f = run(n, args.duration, 'floor', Path(tmp))
-            floor_us = 1e6 * f['cpu_s'] / max(f['received'], 1)
+            floor_us = 1e6 * f['cpu_s'] / f['sent']  # (per message sent, as the node's)
             odom = round(args.duration * 100) * n
             for relay_kind, what in (('relay', 'relay: no estimation'),
                                      ('relay_outputs', "relay with the node's outputs: no "

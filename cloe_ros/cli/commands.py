@@ -27,14 +27,26 @@ DEFAULT_RATE = 100.0
 DEFAULT_SCORE_FROM_SIM = 30.0
 
 EVALUATE_DESCRIPTION = """\
-``cloe evaluate sim``: a simulated scenario (truth known): parameter error per block over time,
-prediction RMSE at 0.5 / 1 / 2 / 5 s beside the true-model, constant-velocity and hold-position
-predictors. ``cloe evaluate bag BAG``: the same prediction scores on a recording against what the
-vehicle did next (no parameter truth), optionally with the recorded future references as the plan.
-``cloe evaluate corpus DIR...``: every flight of many bags, replayed as ``cloe infer`` runs them,
-scored per flight and as the median over flights beside four baselines, with the coverage of the
-95 % radius.
+cloe evaluate sim scores a simulated scenario, where the truth is known: the parameter error per
+block over time, and the prediction RMSE at 0.5 / 1 / 2 / 5 s beside the true-model,
+constant-velocity and hold-position predictors. cloe evaluate bag BAG scores the predictions of a
+recording against what the vehicle did next (no parameter truth), optionally with the recorded
+future references as the plan. cloe evaluate corpus PATH... replays every flight of many bags as
+cloe infer runs them and scores them per flight and as the median over flights, beside four
+baselines, with the coverage of the 95 % radius.
 """
+
+#: Help of ``--node``, which every command with ``--config`` takes.
+NODE_HELP = (
+    "read the --config file as ROS reads it for the node NAME: its '/**' section, then NAME's, "
+    'whose values win (default: %(default)s; e.g. cloe_shard1 for a node renamed so)'
+)
+
+
+def add_node_option(p: argparse.ArgumentParser) -> None:
+    """``--node NAME``: the node whose sections of a ``--config`` file are read
+    (``cloe_ros.io.config.load_settings``)."""
+    p.add_argument('--node', default='cloe_inference', metavar='NAME', help=NODE_HELP)
 
 
 def later(command: str, name: str = 'run') -> Callable[[argparse.Namespace], int]:
@@ -147,17 +159,20 @@ def add_infer(sub: argparse._SubParsersAction) -> None:
             'Runs the same engine as the cloe_inference node over a rosbag2/MCAP bag: every '
             'vehicle with <ns>/odom (nav_msgs/Odometry) and <ns>/reference '
             '(geometry_msgs/PoseStamped) topics is inferred (with <ns>/reference_plan, '
-            'nav_msgs/Path, when present); other topics are ignored. Writes '
-            '<ns>/<output_ns>/state, <ns>/<output_ns>/parameters and <ns>/<output_ns>/prediction '
-            'into OUT_BAG, with copies of the inputs so the output bag is self-contained.'
+            'nav_msgs/Path, when present); other topics are ignored. Writes, under '
+            '<ns>/<output_ns>/ (default output_ns: cloe), state, parameters, parameters_named, '
+            'parameter_labels and, with predictions on, prediction, prediction_radius and '
+            'prediction_markers into the bag OUTPUT, with copies of the inputs so the output bag '
+            'is self-contained.'
         ),
     )
     p.add_argument(
-        'bag', type=Path, nargs='+',
-        help='input bag directory (rosbag2, MCAP); several: each is inferred into OUT/<its name>',
+        'bag', type=Path, nargs='+', metavar='BAG',
+        help='input bag: a rosbag2 directory or a single .mcap file; several: each is inferred '
+        'into OUTPUT/<its name>',
     )  # fmt: skip
     p.add_argument(
-        '-o', '--output', type=Path, required=True,
+        '-o', '--output', type=Path, required=True, metavar='OUTPUT',
         help='output bag directory (new); with several bags, a folder (new, or empty) for them',
     )  # fmt: skip
     p.add_argument(
@@ -173,6 +188,7 @@ def add_infer(sub: argparse._SubParsersAction) -> None:
         type=Path,
         help="YAML with the node's parameters (cloe_inference: ros__parameters: ...)",
     )
+    add_node_option(p)
     p.add_argument(
         '--vehicles',
         nargs='+',
@@ -227,6 +243,7 @@ def add_report(sub: argparse._SubParsersAction) -> None:
         type=Path,
         help="YAML with the node's parameters, for an input bag (like `cloe infer`)",
     )
+    add_node_option(p)
     p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
     p.set_defaults(run=later('report'))
 
@@ -234,12 +251,18 @@ def add_report(sub: argparse._SubParsersAction) -> None:
 def add_evaluate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         'evaluate',
-        help='score identification and prediction (simulation or a bag) against baselines',
+        help='score identification and prediction (a simulation, a bag or a corpus of bags) '
+        'against baselines',
         description=EVALUATE_DESCRIPTION,
     )
     ev = p.add_subparsers(dest='target', metavar='TARGET', required=True)
     s = ev.add_parser('sim', help='a simulated scenario, truth known')
-    s.add_argument('--scenario', default='position', choices=sorted(SCENARIOS))
+    s.add_argument(
+        '--scenario',
+        default='position',
+        choices=sorted(SCENARIOS),
+        help='the simulated scenario (default: %(default)s)',
+    )
     s.add_argument('--duration', type=float, default=90.0, help='simulated s (default: 90)')
     _evaluate_algorithms(s, 'odometry and estimator rate, Hz', 'sim')
     s.add_argument(
@@ -263,7 +286,7 @@ def add_evaluate(sub: argparse._SubParsersAction) -> None:
     )
     _evaluate_common(s)
     b = ev.add_parser('bag', help='a recorded flight: predictions against what happened next')
-    b.add_argument('bag', type=Path)
+    b.add_argument('bag', type=Path, help='bag directory (rosbag2, MCAP) or .mcap file')
     b.add_argument(
         '--vehicle',
         default=None,
@@ -311,6 +334,7 @@ def add_evaluate(sub: argparse._SubParsersAction) -> None:
         '--config', type=Path,
         help="YAML with the node's parameters (as for `cloe infer`), the same for every flight",
     )  # fmt: skip
+    add_node_option(c)
     c.add_argument('--json', type=Path, help='also write the numbers to this JSON file (new)')
     c.add_argument('--force', action='store_true', help='replace the --json file if it exists')
     c.add_argument('-q', '--quiet', action='store_true', help='no progress line')
@@ -339,6 +363,7 @@ def _evaluate_common(p: argparse.ArgumentParser) -> None:
         help="YAML with the node's parameters (as for `cloe infer`); its algorithm and rate apply "
         'unless --algorithms / --rate are given',
     )
+    add_node_option(p)
     p.add_argument('--json', type=Path, help='also write the numbers to this JSON file (new)')
     p.add_argument('--force', action='store_true', help='replace the --json file if it exists')
     p.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
@@ -347,8 +372,10 @@ def _evaluate_common(p: argparse.ArgumentParser) -> None:
 def add_bag(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         'bag',
-        help='inspect bags; recover a bag whose recorder was killed',
-        description='Inspect rosbag2 bags (MCAP storage) and recover incomplete ones.',
+        help='inspect bags; recover a bag whose recorder was killed; make a bag of a NanoBench '
+        'flight',
+        description='Inspect rosbag2 bags (MCAP storage), recover incomplete ones, and make a bag '
+        'of the interface contract from a NanoBench flight CSV.',
     )
     bag_sub = p.add_subparsers(dest='bag_command', metavar='ACTION', required=True)
 

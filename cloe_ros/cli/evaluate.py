@@ -52,7 +52,7 @@ WITHHELD_BECAUSE = (
 def resolve_settings(args: argparse.Namespace) -> dict:
     """The --config file's settings; sets ``args.algorithms`` and ``args.rate`` from it where the
     command line does not give them (else the defaults). Refuses bad values before any work."""
-    settings = load_settings(args.config) if args.config else {}
+    settings = load_settings(args.config, args.node) if args.config else {}
     settings = {k: v for k, v in settings.items() if k != 'vehicles'}
     build_configs(settings)
     if args.algorithms is None:

@@ -2,7 +2,8 @@
 
 ``cloe infer BAG... -o DIR --jobs N``: many bags, ``N`` at once in separate processes (one per
 core by default), each into ``DIR/<its name>``. A bag that fails is reported and the others are
-still written; the exit status is then 1.
+still written; the exit status is then 1. After Ctrl-C no further bag is started, the outputs in
+progress are removed, and stderr lists the outputs completed and those not written.
 
 One bag of several vehicles is split the same way: its vehicles in ``N`` groups, each group
 inferred in a process of its own that sends its encoded outputs to this one, which writes them
@@ -15,6 +16,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import shutil
+import signal
 import sys
 import time
 from collections import Counter
@@ -381,7 +383,7 @@ def _unusable(bag: Path, vehicle: str, engine: VehicleEngine, malformed: int, re
 
 
 def _settings(args: argparse.Namespace) -> dict:
-    settings = load_settings(args.config) if args.config else {}
+    settings = load_settings(args.config, args.node) if args.config else {}
     settings = {k: v for k, v in settings.items() if k not in ('vehicles',)}
     if args.algorithm:
         settings['algorithm'] = args.algorithm
@@ -433,13 +435,39 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Set (in a worker of ``cloe infer BAG...``) when the run is interrupted: no bag is started
+#: after it, and the bag in progress stops and is removed.
+_stop = None
+
+
+def _worker_start(stop) -> None:
+    """A worker of ``cloe infer BAG...``: Ctrl-C is left to the parent, which sets ``stop``."""
+    global _stop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _stop = stop
+
+
+def _stop_when_asked(_stage: str, fraction: float) -> None:
+    """:func:`infer_bag`'s progress callback in a worker: stops the run (its output is then
+    removed) once the parent has been interrupted, unless the output is complete (fraction 1)."""
+    if fraction < 1.0 and _stop is not None and _stop.is_set():
+        raise KeyboardInterrupt
+
+
 def _infer_one(job: tuple) -> tuple[InferResult | None, str]:
-    """One bag of ``cloe infer BAG...``, in a worker process: (result, '') or (None, why)."""
+    """One bag of ``cloe infer BAG...``, in a worker process: (result, ''), (None, why), or
+    (None, '') when the run was interrupted before or while this bag was inferred (its output is
+    not written)."""
     bag, output, settings, vehicles, copy_inputs, compression = job
+    if _stop is not None and _stop.is_set():
+        return None, ''
     try:
-        return infer_bag(bag, output, settings, vehicles, copy_inputs, compression), ''
+        return infer_bag(bag, output, settings, vehicles, copy_inputs, compression,
+                         _stop_when_asked), ''  # fmt: skip
     except (CloeError, BagError) as err:
         return None, str(err)
+    except KeyboardInterrupt:
+        return None, ''
 
 
 def _run_many(args: argparse.Namespace, settings: dict) -> int:
@@ -460,16 +488,27 @@ def _run_many(args: argparse.Namespace, settings: dict) -> int:
     work = [(bag, out / name, settings, args.vehicles, not args.no_inputs, args.compression)
             for bag, name in zip(args.bag, names)]  # fmt: skip
     failed = []
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        for done, (job, (result, why)) in enumerate(
-            zip(work, pool.map(_infer_one, work)), start=1
-        ):
+    stop = multiprocessing.get_context().Event()
+    pool = ProcessPoolExecutor(max_workers=jobs, initializer=_worker_start, initargs=(stop,))
+    futures = []
+    try:
+        futures += [pool.submit(_infer_one, job) for job in work]
+        for done, (job, future) in enumerate(zip(work, futures), start=1):
+            result, why = future.result()
             if result is None:
                 failed.append(why)
             else:
                 _print(result, job[1])
+                sys.stdout.flush()
             if not args.quiet:
                 print(f'[{done}/{len(work)}] {job[0].name}', file=sys.stderr, flush=True)
+    except KeyboardInterrupt:
+        stop.set()  # no bag starts after this; those in progress stop, their outputs removed
+        pool.shutdown(wait=True, cancel_futures=True)
+        _say_interrupted([job[1] for job in work], futures, out if created else None)
+        raise
+    finally:
+        pool.shutdown(wait=True)
     for why in failed:
         print(f'ERROR: {why}', file=sys.stderr)
     if len(failed) == len(work):
@@ -477,6 +516,23 @@ def _run_many(args: argparse.Namespace, settings: dict) -> int:
             shutil.rmtree(out, ignore_errors=True)  # (empty: nothing was written)
         raise CliError(f'none of the {len(work)} bags could be inferred')
     return 1 if failed else 0
+
+
+def _say_interrupted(outputs: list[Path], futures: list, created: Path | None) -> None:
+    """After Ctrl-C in ``cloe infer BAG...``, the work done (``futures``, those of ``outputs``
+    submitted): which outputs are complete and which were not written, on stderr; the output
+    folder ``created`` removed if it holds none."""
+    complete = [
+        out
+        for out, f in zip(outputs, futures)
+        if not f.cancelled() and f.exception() is None and f.result()[0] is not None
+    ]
+    missing = [out for out in outputs if out not in complete]
+    print(f'outputs complete: {", ".join(map(str, complete)) or "none"}', file=sys.stderr)
+    if missing:
+        print(f'outputs not written: {", ".join(map(str, missing))}', file=sys.stderr)
+    if created is not None and not complete:
+        shutil.rmtree(created, ignore_errors=True)
 
 
 def _output_name(bag: Path) -> str:

@@ -641,7 +641,7 @@ def _prepare_folder(folder: Path, bag: Path, force: bool) -> None:
 
 
 def _settings(args: argparse.Namespace) -> dict:
-    settings = load_settings(args.config) if args.config else {}
+    settings = load_settings(args.config, args.node) if args.config else {}
     settings = {k: v for k, v in settings.items() if k not in ('vehicles',)}
     if args.algorithm:
         settings['algorithm'] = args.algorithm

@@ -7,10 +7,12 @@ The keys are the node's parameter names; the same YAML file configures both::
         algorithm: cloe_sm
         rate: 100.0
 
-(a flat mapping of the same keys works too). Unknown keys are refused, naming them. Names,
-defaults, ranges and which configuration field each key fills are those of the table in
-:mod:`cloe_ros.settings`, which the node declares its parameters from: a value the node refuses is
-refused here.
+(a flat mapping of the same keys works too). As ROS reads a parameter file, a node takes the
+``/**:`` section (every node) and then its own (``cloe_inference:`` or ``/cloe_inference:``), whose
+values win; another node name (a node renamed ``cloe_shard1``) is chosen by ``node_name``. Unknown
+keys are refused, naming them. Names, defaults, ranges and which configuration field each key
+fills are those of the table in :mod:`cloe_ros.settings`, which the node declares its parameters
+from: a value the node refuses is refused here.
 """
 
 from __future__ import annotations
@@ -84,9 +86,16 @@ def node_values(values: dict[str, Any]) -> dict[str, Any]:
     return {s.name: s.coerce(values.get(s.name, s.default)) for s in node_settings()}
 
 
-def load_settings(path: str | Path, node_name: str = 'cloe_inference') -> dict[str, Any]:
-    """Parameter values from a YAML file: ``<node_name>: ros__parameters: {...}``, ``/**:`` or a
-    flat mapping. Raises :class:`SettingsError` for unreadable files and unknown keys."""
+#: The node name whose section of a parameter file ``cloe infer --config`` reads by default.
+NODE_NAME = 'cloe_inference'
+
+
+def load_settings(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
+    """Parameter values from a YAML file of ROS node sections (``<name>: ros__parameters:
+    {...}``), or a flat mapping of them. Of node sections, those of ``/**`` and then of
+    ``node_name`` (``/`` before either name optional), the latter's values winning, as ROS gives a
+    node named ``node_name``. Raises :class:`SettingsError` for unreadable files, unknown keys and
+    a file with sections for other nodes but none for ``node_name`` (naming them)."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
@@ -104,14 +113,36 @@ def load_settings(path: str | Path, node_name: str = 'cloe_inference') -> dict[s
     if not isinstance(data, dict):
         msg = f'{path}: expected a mapping of parameter names to values'
         raise SettingsError(msg)
-    for key in (node_name, f'/{node_name}', '/**'):
-        section = data.get(key)
-        if isinstance(section, dict) and isinstance(section.get('ros__parameters'), dict):
-            data = section['ros__parameters']
-            break
+    data = _node_parameters(data, node_name, path)
     try:
         build_configs(data)  # refuse unknown keys and bad values now, naming the file
         node_values({k: v for k, v in data.items() if k in SETTINGS})
     except SettingsError as err:
         raise SettingsError(f'{path}: {err}') from err
     return data
+
+
+def _node_parameters(data: dict[str, Any], node_name: str, path: Path) -> dict[str, Any]:
+    """The parameters of ``data`` (a parameter file's mapping) for the node ``node_name``: its
+    ``/**`` section updated with its own; ``data`` itself if it has no node section (a flat
+    mapping). Other nodes' sections are ignored, as ROS ignores them; but a file with only
+    sections for other nodes (no ``/**``, none for ``node_name``) is refused, naming them: it was
+    meant for another node name."""
+    sections = {
+        key: value['ros__parameters']
+        for key, value in data.items()
+        if isinstance(value, dict) and isinstance(value.get('ros__parameters'), dict)
+    }
+    if not sections:
+        return data
+    name = '/' + node_name.strip('/')
+    named = {key for key in sections if str(key).strip('/') != '**'}
+    own = [key for key in named if '/' + str(key).strip('/') == name]
+    if not own and len(named) == len(sections):
+        msg = (f'{path} has parameters for {", ".join(sorted(map(str, named)))}, not for '
+               f'{node_name} nor /**: name the node to read with --node NAME')  # fmt: skip
+        raise SettingsError(msg)
+    values: dict[str, Any] = {}
+    for key in [k for k in sections if k not in named] + sorted(own, key=str):
+        values.update(sections[key])
+    return values

@@ -8,6 +8,7 @@ future reference, predicts as well as the true model does.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from types import SimpleNamespace
@@ -313,3 +314,95 @@ def test_evaluate_corpus_splits_the_vehicles_of_a_bag_over_the_workers(tmp_path,
         data.append(json.loads(out.read_text()))
     assert [f['name'] for f in data[1]['flights']] == ['two/uav1', 'two/uav2']
     assert data[1]['flights'] == data[0]['flights']
+
+
+@pytest.mark.filterwarnings('error::RuntimeWarning')
+def test_a_flight_with_nothing_to_score_is_named_and_left_out(tmp_path, capsys):
+    """A bag whose odometry positions are all NaN, sorted before two good flights: it is an
+    ``ERROR:`` line naming it and why (exit status 1, as a bag that cannot be read), its row and
+    its JSON entry say it has nothing to score, and the medians, the pooled coverage and the
+    worst ratio are those of the two others (before: a row of nan, status 0, and a worst ratio of
+    nan because the NaN flight came first). ``--score-from`` beyond every flight: every flight is
+    named and it is an error; numpy's warning of an all-NaN median does not leak (filterwarnings
+    turns it into a failure)."""
+    from bag_fixtures import simulate, write_sim_bag
+
+    corpus = tmp_path / 'corpus'
+    result = simulate(duration=15.0)
+    measured = result.measured.copy()
+    measured[..., [0, 4, 10]] = np.nan
+    write_sim_bag(corpus / 'a_blind', dataclasses.replace(result, measured=measured))
+    write_sim_bag(corpus / 'b_good', result)
+    write_sim_bag(corpus / 'c_good', result)
+    out = tmp_path / 'corpus.json'
+    status = main(['evaluate', 'corpus', str(corpus), '-q', '--jobs', '1', '--json', str(out)])
+    printed = capsys.readouterr()
+    assert status == 1
+    blind_why = 'no odometry message was accepted (each was rejected or malformed)'
+    assert printed.err == f'ERROR: {corpus / "a_blind"}: nothing to score: {blind_why}\n'
+    rows = printed.out.splitlines()
+    assert rows[2] == 'a_blind  nothing to score: ' + blind_why
+    assert 'median over 2 flights (1 flight(s) with nothing to score left out)' in printed.out
+    data = json.loads(out.read_text())
+    blind, good, _ = data['flights']
+    assert (blind['scored'], good['scored'], data['flights_scored']) == (False, True, 2)
+    assert blind['nothing_to_score'] == blind_why
+    assert data['worst_ratio'] == good['worst_ratio'] and data['worst_ratio_flight'] == 'b_good'
+    assert f'(any horizon): {good["worst_ratio"]:.2f} (b_good);' in printed.out
+    np.testing.assert_allclose(data['median_rmse_m']['model'], good['rmse_m']['model'])
+    assert all(0.0 <= c <= 1.0 for c in data['pooled_coverage'])
+    # nothing issued from --score-from on: every flight named, and no table
+    status = main(['evaluate', 'corpus', str(corpus / 'b_good'), str(corpus / 'c_good'), '-q',
+                   '--jobs', '1', '--score-from', '100'])  # fmt: skip
+    printed = capsys.readouterr()
+    assert status == 1 and printed.out == ''
+    assert printed.err.splitlines() == [
+        f'ERROR: {corpus / name}: nothing to score: no prediction was issued from --score-from '
+        '100 s on (the last at 15.0 s after the first odometry)'
+        for name in ('b_good', 'c_good')
+    ] + ['ERROR: no flight could be scored']
+
+
+def test_a_vehicle_with_nothing_to_score_is_named_by_bag_and_vehicle(tmp_path, capsys):
+    """Among the vehicles of one bag, the one without a usable position is named with its bag."""
+    from bag_fixtures import simulate, write_sim_bag
+
+    result = simulate(duration=15.0)
+    measured = result.measured.copy()
+    measured[:, :, [0, 4, 10]] = np.nan
+    two = dataclasses.replace(
+        result,
+        measured=np.concatenate([result.measured, measured], axis=1),
+        zeta=np.concatenate([result.zeta, result.zeta], axis=1),
+        reference=np.concatenate([result.reference, result.reference], axis=1),
+    )
+    bag = write_sim_bag(tmp_path / 'two', two, namespaces=('/uav1', '/uav2'))
+    status = main(['evaluate', 'corpus', str(bag), '-q', '--jobs', '2'])
+    printed = capsys.readouterr()
+    assert status == 1
+    assert printed.err.startswith(f'ERROR: {bag} (two/uav2): nothing to score: ')
+    assert 'median over 1 flights (1 flight(s) with nothing to score left out)' in printed.out
+
+
+def test_find_bags_follows_symbolic_links_once(tmp_path):
+    """A folder of links to bags finds them, a linked bag among real ones is kept, and a link to a
+    folder above (a loop) ends the search instead of repeating it; sorted, each bag once."""
+    from cloe_ros.cli.corpus import find_bags
+
+    for name in ('real/a', 'elsewhere/b', 'elsewhere/c'):
+        (tmp_path / name).mkdir(parents=True)
+        (tmp_path / name / 'metadata.yaml').write_text('')
+    (tmp_path / 'elsewhere' / 'd.mcap').write_bytes(b'')
+    links = tmp_path / 'links'
+    links.mkdir()
+    (links / 'b').symlink_to(tmp_path / 'elsewhere' / 'b')
+    (links / 'c').symlink_to(tmp_path / 'elsewhere' / 'c')
+    (links / 'd.mcap').symlink_to(tmp_path / 'elsewhere' / 'd.mcap')
+    (tmp_path / 'real' / 'b_link').symlink_to(tmp_path / 'elsewhere' / 'b')
+    (tmp_path / 'real' / 'loop').symlink_to(tmp_path / 'real')
+    elsewhere, real = (tmp_path / 'elsewhere').resolve(), (tmp_path / 'real').resolve()
+    assert find_bags([links]) == [elsewhere / 'b', elsewhere / 'c', elsewhere / 'd.mcap']
+    assert find_bags([tmp_path / 'real']) == [elsewhere / 'b', real / 'a']
+    assert find_bags([links, tmp_path / 'real', links / 'b']) == sorted(
+        [elsewhere / 'b', elsewhere / 'c', elsewhere / 'd.mcap', real / 'a']
+    )

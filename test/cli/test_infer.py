@@ -12,8 +12,12 @@ from __future__ import annotations
 import dataclasses
 import functools
 import io
+import os
 import re
 import shutil
+import signal
+import subprocess
+import sys
 from contextlib import redirect_stdout
 from pathlib import Path
 
@@ -309,6 +313,28 @@ def test_config_with_an_out_of_range_rate(sim_bag, tmp_path, capsys):
     config = tmp_path / 'inference.yaml'
     config.write_text('cloe_inference:\n  ros__parameters:\n    rate: 0.5\n')
     assert_error(capsys, f'{config}: rate must be within [1, 2000], got 0.5',
+                 sim_bag, '-o', tmp_path / 'out', '--config', config)  # fmt: skip
+    assert not (tmp_path / 'out').exists()
+
+
+def test_config_of_a_renamed_node_is_read_with_node(sim_bag, tmp_path, capsys):
+    """A shard's parameter file (docs/multihost.md): ``/**`` for every node and a section keyed by
+    the shard's node name. ``--node`` picks the section, whose values win over ``/**``'s; without
+    it, the node of the default name reads ``/**`` alone, as ROS gives it (before: ``unknown
+    setting(s): cloe_shard1``). A file with only other nodes' sections is refused, naming them."""
+    config = tmp_path / 'shards.yaml'
+    config.write_text('/**:\n  ros__parameters:\n    rate: 50.0\n    output_ns: shard\n'
+                      'cloe_shard1:\n  ros__parameters:\n    rate: 20.0\n')  # fmt: skip
+    for node, steps in ((None, 751), ('/cloe_shard1', 301)):  # 50 or 20 Hz over 15 s
+        out = tmp_path / f'out{steps}'
+        status, stdout, err = run_infer(capsys, sim_bag, '-o', out, '-q', '--config', config,
+                                        *(('--node', node) if node else ()))  # fmt: skip
+        assert status == 0, err
+        assert stdout.startswith(f'/: {steps} steps, 0 input(s) rejected\n')
+        assert '/shard/state' in topic_counts(out)
+    config.write_text('cloe_shard1:\n  ros__parameters:\n    rate: 20.0\n')
+    assert_error(capsys, f'{config} has parameters for cloe_shard1, not for cloe_inference nor '
+                 '/**: name the node to read with --node NAME',
                  sim_bag, '-o', tmp_path / 'out', '--config', config)  # fmt: skip
     assert not (tmp_path / 'out').exists()
 
@@ -855,6 +881,45 @@ def test_many_bags_refuse_a_used_folder_and_shared_names(sim_bag, tmp_path, caps
                  sim_bag, sim_bag, '-o', tmp_path / 'new', '-q')  # fmt: skip
     assert_error(capsys, '--jobs must be >= 0 (0: one per core), got -1',
                  sim_bag, '-o', tmp_path / 'new', '-j', '-1')  # fmt: skip
+
+
+def test_ctrl_c_starts_no_further_bag_and_says_what_was_written(sim_bag, tmp_path):
+    """``cloe infer A B C -o DIR --jobs 1`` interrupted (SIGINT to the command) once A is written:
+    no bag starts after that (before, the shutdown of the process pool waited for every bag queued
+    and C was written in full), the bag in progress stops and its output is removed, and stderr
+    lists the outputs that are complete and those that are not; exit status 130."""
+    for name in ('a', 'b', 'c'):
+        shutil.copytree(sim_bag, tmp_path / 'in' / name)
+    out = tmp_path / 'out'
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'cloe_ros.cli.main', 'infer', *(str(tmp_path / 'in' / n)
+         for n in 'abc'), '-o', str(out), '--jobs', '1', '-q'],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        lines = []
+        while not (lines and lines[-1].startswith('wrote ')):
+            line = proc.stdout.readline()
+            assert line, proc.stderr.read()  # (the command ended before writing a bag)
+            lines.append(line)
+        assert lines[-1].startswith(f'wrote {out / "a"}:')
+        proc.send_signal(signal.SIGINT)
+        rest, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert 'Traceback' not in err, err
+    *_, complete, missing, last = err.splitlines()
+    assert last == 'interrupted'
+    written = complete.removeprefix('outputs complete: ').split(', ')
+    not_written = missing.removeprefix('outputs not written: ').split(', ')
+    assert written[0] == str(out / 'a') and not_written[-1] == str(out / 'c')
+    assert sorted(written + not_written) == [str(out / n) for n in 'abc']
+    assert sorted(map(str, out.iterdir())) == written  # exactly the complete ones
+    assert rest.count('wrote ') == len(written) - 1
+    for name in written:
+        assert topic_counts(Path(name))['/cloe/state'] == 1501
 
 
 def _moved_bag(sim_bag: Path, path: Path, names: dict[str, tuple[int, float]]) -> Path:

@@ -3,6 +3,7 @@ pipe."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import re
 import subprocess
@@ -12,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from cloe_ros.cli import bag as bag_command
-from cloe_ros.cli.main import main
+from cloe_ros.cli.main import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[2]
 POSITION = ROOT / 'bags' / 'position'
@@ -55,6 +56,44 @@ def test_the_statuses_are_those_documented(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(bag_command, 'bag_info', lambda path: interrupted(path))
     assert main(['bag', 'info', str(POSITION)]) == 130
     assert capsys.readouterr().err == 'interrupted\n'
+
+
+def _parsers(parser: argparse.ArgumentParser, prefix: tuple[str, ...] = ('cloe',)):
+    """``(command words, parser)`` of ``cloe`` and of every command and action under it."""
+    yield prefix, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _parsers(sub, (*prefix, name))
+
+
+def test_every_help_text_is_there_plain_and_complete():
+    """Every argument of every command says what it is, in plain text (no RST markup); a command
+    with actions names them all in ``cloe --help``; ``cloe infer --help`` names the outputs it
+    writes (those of the output encoder), the option that names the output, and .mcap inputs."""
+    from cloe_ros.io.outputs import OutputConfig, OutputEncoder
+
+    parsers = dict(_parsers(build_parser()))
+    for words, parser in parsers.items():
+        text = parser.format_help()
+        assert '``' not in text, words
+        for action in parser._actions:
+            if not isinstance(action, argparse._SubParsersAction):
+                assert action.help, (words, action.dest)
+    top = parsers[('cloe',)].format_help()
+    evaluate = re.search(r'^    evaluate +(.*(\n {14}.*)*)', top, re.M).group(1)
+    assert 'corpus' in evaluate
+    bag = re.search(r'^    bag +(.*(\n {14}.*)*)', top, re.M).group(1)
+    assert 'recover' in bag and 'NanoBench' in bag
+    assert 'NanoBench' in parsers[('cloe', 'bag')].description
+    infer = parsers[('cloe', 'infer')]
+    description = ' '.join(infer.description.split())
+    for topic in OutputEncoder(OutputConfig(), '/uav1').topics:
+        assert f' {topic.rsplit("/", 1)[1]}' in description, topic
+    assert 'OUT_BAG' not in infer.format_help() and 'into the bag OUTPUT' in description
+    assert '.mcap' in next(a.help for a in infer._actions if a.dest == 'bag')
+    scenario = parsers[('cloe', 'evaluate', 'sim')].format_help()
+    assert re.search(r'--scenario \{.*\}\s+the simulated scenario \(default: position\)', scenario)
 
 
 def test_a_closed_pipe_ends_quietly():

@@ -106,3 +106,61 @@ def test_a_file_names_itself_in_the_reason(tmp_path):
     path.write_text('cloe_inference:\n  ros__parameters:\n    rate: 3000.0\n')
     with pytest.raises(SettingsError, match=r'inference.yaml: rate must be within \[1, 2000\]'):
         load_settings(path)
+
+
+SHARDS = """\
+/**:
+  ros__parameters:
+    algorithm: cloe_sm
+    rate: 50.0
+cloe_shard2:
+  ros__parameters:
+    rate: 20.0
+"""
+
+
+@pytest.mark.parametrize(
+    ('text', 'node', 'expected'),
+    [
+        ('cloe_inference:\n  ros__parameters:\n    rate: 50.0\n', 'cloe_inference',
+         {'rate': 50.0}),
+        ('/cloe_inference:\n  ros__parameters:\n    rate: 50.0\n', 'cloe_inference',
+         {'rate': 50.0}),
+        ('/**:\n  ros__parameters:\n    rate: 50.0\n', 'cloe_inference', {'rate': 50.0}),
+        ('/**:\n  ros__parameters:\n    rate: 50.0\n', 'cloe_shard1', {'rate': 50.0}),
+        ('rate: 50.0\n', 'cloe_shard1', {'rate': 50.0}),
+        ('cloe_shard1:\n  ros__parameters:\n    rate: 50.0\n', 'cloe_shard1', {'rate': 50.0}),
+        ('cloe_shard1:\n  ros__parameters:\n    rate: 50.0\n', '/cloe_shard1', {'rate': 50.0}),
+        ('/cloe_shard1:\n  ros__parameters:\n    rate: 50.0\n', 'cloe_shard1', {'rate': 50.0}),
+        (SHARDS, 'cloe_shard2', {'algorithm': 'cloe_sm', 'rate': 20.0}),
+        (SHARDS + 'quadrotor_sim:\n  ros__parameters:\n    scenario: hover\n', 'cloe_shard2',
+         {'algorithm': 'cloe_sm', 'rate': 20.0}),
+        (SHARDS, 'cloe_inference', {'algorithm': 'cloe_sm', 'rate': 50.0}),  # (/** alone, as ROS)
+    ],
+)  # fmt: skip
+def test_a_node_reads_the_wildcard_section_then_its_own(tmp_path, text, node, expected):
+    """As ROS gives a node named ``node`` its parameters: ``/**`` first, then its own section
+    (with or without a leading ``/``), whose values win; other nodes' sections are ignored."""
+    path = tmp_path / 'params.yaml'
+    path.write_text(text)
+    assert load_settings(path, node) == expected
+
+
+@pytest.mark.parametrize(
+    ('text', 'reason'),
+    [
+        ('cloe_shard1:\n  ros__parameters:\n    rate: 50.0\n', 'cloe_shard1'),
+        ('cloe_shard1:\n  ros__parameters:\n    rate: 50.0\nquadrotor_sim:\n  ros__parameters:\n'
+         '    scenario: hover\n', 'cloe_shard1, quadrotor_sim'),
+    ],
+)  # fmt: skip
+def test_a_file_for_other_nodes_names_them_and_the_option(tmp_path, text, reason):
+    """Sections keyed by other node names (a shard's), none by the node read and no ``/**``:
+    the file is refused, naming the sections and ``--node`` (before: ``unknown setting(s):
+    cloe_shard1``)."""
+    path = tmp_path / 'params.yaml'
+    path.write_text(text)
+    with pytest.raises(SettingsError) as info:
+        load_settings(path)
+    assert str(info.value) == (f'{path} has parameters for {reason}, not for cloe_inference nor '
+                               '/**: name the node to read with --node NAME')  # fmt: skip

@@ -884,17 +884,20 @@ def test_many_bags_refuse_a_used_folder_and_shared_names(sim_bag, tmp_path, caps
 
 
 def test_ctrl_c_starts_no_further_bag_and_says_what_was_written(sim_bag, tmp_path):
-    """``cloe infer A B C -o DIR --jobs 1`` interrupted (SIGINT to the command) once A is written:
-    no bag starts after that (before, the shutdown of the process pool waited for every bag queued
-    and C was written in full), the bag in progress stops and its output is removed, and stderr
-    lists the outputs that are complete and those that are not; exit status 130."""
-    for name in ('a', 'b', 'c'):
+    """``cloe infer A B C D E F -o DIR --jobs 1`` interrupted (SIGINT to the command) once A is
+    written: no bag starts after that (before, the shutdown of the process pool waited for every
+    bag queued and the last was written in full), the bag in progress stops and its output is
+    removed, and stderr lists the outputs that are complete and those that are not; exit status
+    130. (Six bags, so that however late the signal comes on a busy machine, the last is never
+    reached.)"""
+    names = 'abcdef'
+    for name in names:
         shutil.copytree(sim_bag, tmp_path / 'in' / name)
     out = tmp_path / 'out'
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen(
         [sys.executable, '-m', 'cloe_ros.cli.main', 'infer', *(str(tmp_path / 'in' / n)
-         for n in 'abc'), '-o', str(out), '--jobs', '1', '-q'],
+         for n in names), '-o', str(out), '--jobs', '1', '-q'],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
@@ -914,8 +917,8 @@ def test_ctrl_c_starts_no_further_bag_and_says_what_was_written(sim_bag, tmp_pat
     assert last == 'interrupted'
     written = complete.removeprefix('outputs complete: ').split(', ')
     not_written = missing.removeprefix('outputs not written: ').split(', ')
-    assert written[0] == str(out / 'a') and not_written[-1] == str(out / 'c')
-    assert sorted(written + not_written) == [str(out / n) for n in 'abc']
+    assert written[0] == str(out / 'a') and not_written[-1] == str(out / 'f')
+    assert sorted(written + not_written) == [str(out / n) for n in names]
     assert sorted(map(str, out.iterdir())) == written  # exactly the complete ones
     assert rest.count('wrote ') == len(written) - 1
     for name in written:

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_swarm_benchmark_refuses_bad_arguments(args, expected):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.run([sys.executable, str(ROOT / 'scripts' / 'swarm_benchmark.py'), *args],
-                          env=env, capture_output=True, text=True, timeout=60)  # fmt: skip
+                          env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 2, proc.stderr
     assert 'Traceback' not in proc.stderr
     assert proc.stderr.splitlines()[-1] == f'swarm_benchmark.py: error: {expected}'

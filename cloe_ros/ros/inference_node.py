@@ -698,7 +698,9 @@ class InferenceNode(Node):
             message += '; lost in DDS: ' + ', '.join(f'{n} {k}' for k, n in lost.items() if n)
         missing = self._missing.get(vehicle, [])
         since = self._missing_since.get(vehicle)
-        if missing and since is not None and time.monotonic() - since >= self.publisher_timeout:
+        if since is None or time.monotonic() - since < self.publisher_timeout:
+            missing = []  # (not for publisher_timeout yet: as the warning and the node's status)
+        if missing:
             level = max(level, messages.WARN)
             message += (f'; nothing publishes {" and ".join(missing)} for '
                         f'{time.monotonic() - since:.0f} s')  # fmt: skip

@@ -295,6 +295,22 @@ def test_two_nodes_inferring_one_vehicle_are_warned_of(context, capfd):
                 n.destroy_node()
 
 
+def test_publishers_missing_waits_for_the_timeout_as_the_warning_does(context):
+    """Before publisher_timeout, a vehicle without publishers is neither WARN nor listed in its
+    publishers_missing (the value agrees with the status and the node's without_publishers)."""
+    inf = _inference(context, vehicles=['/uav9'], discovery_period=0.1, publisher_timeout=600.0)
+    ex = _executor(context, inf)
+    try:
+        assert spin_until(ex, lambda: inf._missing['/uav9'] == ['odom', 'reference'], 30)
+        status = inf.vehicle_status('/uav9', 0.0)
+        assert dict(status.values)['publishers_missing'] == ''
+        assert 'nothing publishes' not in status.message
+        assert dict(inf.node_status().values)['without_publishers'] == ''
+    finally:
+        ex.shutdown()
+        inf.destroy_node()
+
+
 def test_a_listed_vehicle_without_publishers_is_warned_of(context, capfd):
     """/uav1 has publishers, /uav9 has none: after publisher_timeout, /uav9 is WARN in
     /diagnostics and the log says what nothing publishes."""

@@ -1,6 +1,6 @@
 """``cloe demo``: the main job. Simulator, three inference nodes (CLOE, CLOE-SM, cloe_iv) and the
 recorder as separate processes on a private DDS domain; then the comparison table from the
-recorded bag, and plots. The only ``cloe`` subcommand that needs DDS."""
+recorded bag, and plots. It needs DDS, as ``cloe live`` does; the other subcommands do not."""
 
 from __future__ import annotations
 

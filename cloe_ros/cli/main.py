@@ -1,7 +1,7 @@
 """The ``cloe`` command: the demo, and the package's offline tools.
 
-``cloe demo`` starts the nodes on a private, localhost-only DDS domain; every other subcommand
-works offline on files and needs no DDS domain.
+``cloe demo`` starts the nodes on a private, localhost-only DDS domain and ``cloe live`` relays a
+DDS domain; every other subcommand works offline on files and needs no DDS domain.
 
 Each subcommand's arguments are declared in :mod:`cloe_ros.cli.commands`, which imports nothing
 that does the work; the subcommand itself lives in its own module, ``cloe_ros.cli.<command>``
@@ -55,8 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog='cloe',
         description=(
             'Trajectory inference of quadrotors with CLOE, CLOE-SM and cloe_iv. `cloe demo` runs '
-            'the nodes on a private, localhost-only DDS domain; the other commands work offline '
-            'on files and need no DDS.'
+            'the nodes on a private, localhost-only DDS domain and `cloe live` relays a DDS '
+            'domain; the other commands work offline on files and need no DDS.'
         ),
         epilog=EXIT_STATUS,
         formatter_class=argparse.RawDescriptionHelpFormatter,

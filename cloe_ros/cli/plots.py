@@ -1,4 +1,5 @@
-"""Figures of the paper reproduction (Figures 6-8, 10-11) as PNG files."""
+"""Figures as PNG files: the paper reproduction's (Figures 6-8, 10-12), and the flight figures of
+``cloe demo`` and ``cloe report``."""
 
 from __future__ import annotations
 

@@ -32,7 +32,7 @@ bits.
 
 The kernels Python calls compile when their module is imported (explicit signatures) and are
 cached on disk beside it (``cache=True``), so no message ever waits on a compile: the first
-import on a machine takes a few seconds, later ones load the machine code. The helpers, which
+import on a machine takes about a minute, later ones load the machine code. The helpers, which
 only other kernels call (:meth:`Compiler.helper`), are compiled into their callers and never
 loaded by themselves: an import loads only the kernels Python calls (24 of the 52). When that
 came in, it loaded 25 kernels instead of 64, about 0.2 s less per process (EVALUATION.md,
@@ -60,7 +60,7 @@ class Compiler:
     the name it is imported by, against ``module``, the name it was loaded as) reads and writes
     it. Where numba can have no cache (no writable folder for it: the package's read-only, and
     so the user's cache folder, with no ``NUMBA_CACHE_DIR``; or an entry it cannot load), the
-    kernels compile without it, in every process that imports them (a few seconds, still
+    kernels compile without it, in every process that imports them (about a minute, still
     before any message), and one warning says so."""
 
     def __init__(self, module: str, own: str) -> None:

@@ -8,13 +8,16 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
 * runs a :class:`cloe_ros.core.engine.VehicleEngine` in fixed steps of message time (header
   stamps; never the wall clock). The engines are one :class:`cloe_ros.core.fleet.Fleet`: the
   vehicles with new input step together, one batched estimator call per grid step, as soon as
-  every vehicle has new input and at the latest 1.5 ``batch_period`` of wall time after the
+  every vehicle has new input (or twice as many inputs as vehicles have come: some are silent)
+  and at the latest 1.5 ``batch_period`` of wall time after the
   first input (the batch timer runs every ``batch_period`` and steps a batch whose first input
   has waited half of it; ``batch_period`` 0: each vehicle alone at each of its messages; the
   estimates are the same either way);
 * publishes ``<ns>/<output_ns>/state`` (nav_msgs/Odometry) every step,
-  ``<ns>/<output_ns>/parameters`` (std_msgs/Float64MultiArray, labelled) at ``parameters_rate`` and
-  ``<ns>/<output_ns>/prediction`` (nav_msgs/Path, poses at future stamps) at ``prediction_rate``;
+  ``<ns>/<output_ns>/parameters`` (std_msgs/Float64MultiArray, labelled) and ``parameters_named``
+  at ``parameters_rate``, ``parameter_labels`` once (latched), and ``<ns>/<output_ns>/prediction``
+  (nav_msgs/Path, poses at future stamps), ``prediction_radius`` and ``prediction_markers`` at
+  ``prediction_rate`` (docs/outputs.md);
 * publishes ``/diagnostics`` every ``diagnostics_period`` (on its timer, or from its inputs when
   the timer's turn is held up behind them, a tenth of a period overdue: a node behind its inputs
   still reports about on time) and

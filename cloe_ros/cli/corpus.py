@@ -61,10 +61,11 @@ def find_bags(paths: list[Path]) -> list[Path]:
         seen: set[Path] = set()
         for root, dirs, files in os.walk(path, followlinks=True):
             here = Path(root)
-            if here.resolve() in seen:  # (a link loop, or a folder linked twice)
+            real = here.resolve()
+            if real in seen:  # (a link loop, or a folder linked twice)
                 dirs[:] = []
                 continue
-            seen.add(here.resolve())
+            seen.add(real)
             if 'metadata.yaml' in files:
                 found.append(here)
                 dirs[:] = []

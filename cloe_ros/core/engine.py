@@ -295,10 +295,10 @@ def _near(position, previous, dt_ns: int) -> bool:
     return dx * dx + dy * dy + dz * dz <= reach * reach
 
 
-def _drop_unpaired(queue: deque, before_ns: int) -> None:
+def _drop_older(queue: deque, t_ns: int) -> None:
     """Drop the inputs of ``queue`` (stamp, value), in stamp order, that precede the last one
-    stamped at or before ``before_ns``."""
-    while len(queue) > 1 and queue[1][0] <= before_ns:
+    stamped at or before ``t_ns`` (no step at or after ``t_ns`` needs them)."""
+    while len(queue) > 1 and queue[1][0] <= t_ns:
         queue.popleft()
 
 
@@ -662,7 +662,7 @@ class VehicleEngine:
             self._count_missing(self._odom[-1][0], sample.stamp_ns)
         self._odom.append((sample.stamp_ns, zeta))
         if self._est is None:  # (a running estimator drops the odometry it has stepped past)
-            _drop_unpaired(self._odom, sample.stamp_ns - self._unpaired_span_ns)
+            _drop_older(self._odom, sample.stamp_ns - self._unpaired_span_ns)
         self.stats.odom_accepted += 1
         held = self._held_refs
         if held and not self._held_refs_backward:
@@ -732,7 +732,7 @@ class VehicleEngine:
             self._ref_interval_ns = dt if self._ref_interval_ns is None else (
                 self._ref_interval_ns + 0.05 * (dt - self._ref_interval_ns))  # fmt: skip
         self._refs.append(entry)
-        _drop_unpaired(self._refs, stamp - self._unpaired_span_ns)
+        _drop_older(self._refs, stamp - self._unpaired_span_ns)
         self.stats.reference_accepted += 1
         return None
 
@@ -949,9 +949,7 @@ class VehicleEngine:
         odom = self._odom
         if not odom or odom[-1][0] < t_ns or odom[0][0] > t_ns:
             return None
-        # drop samples no longer needed: keep the last one at or before t_ns
-        while len(odom) > 1 and odom[1][0] <= t_ns:
-            odom.popleft()
+        _drop_older(odom, t_ns)  # (samples no longer needed)
         t0, z0 = odom[0]
         if t0 == t_ns or len(odom) == 1:
             return z0.copy()
@@ -962,8 +960,7 @@ class VehicleEngine:
     def _reference_at(self, t_ns: int, yaw_now: float) -> np.ndarray | None:
         """The latest reference stamped at or before ``t_ns`` (yaw taken near ``yaw_now``)."""
         refs = self._refs
-        while len(refs) > 1 and refs[1][0] <= t_ns:
-            refs.popleft()
+        _drop_older(refs, t_ns)
         if not refs or refs[0][0] > t_ns:
             return None
         r = refs[0][1].copy()

@@ -453,14 +453,13 @@ class InferenceNode(Node):
                     self.get_logger().info(f'{ns}: odom and reference are published again')
                 continue
             since = self._missing_since.setdefault(v, now)
-            if now - since < self.publisher_timeout:
+            if now - since < self.publisher_timeout or v in self._hinted:
                 continue
-            if v in self._warned_missing:
-                # (namespaced vehicles that took off after the warning: its hint, once)
-                if v in self._hinted or not self._flying_elsewhere(ns, topics):
-                    continue
+            flying = self._flying_elsewhere(ns, topics)
+            if v in self._warned_missing and not flying:
+                continue  # (warned; warned again, once, with the hint if vehicles take off)
             self._warned_missing.add(v)
-            self.get_logger().warning(self._missing_warning(v, missing, now - since, topics))
+            self.get_logger().warning(self._missing_warning(v, missing, now - since, flying))
 
     def _check_doubled(self, v: str) -> None:
         """Warn (once, and in /diagnostics) while something else publishes vehicle ``v``'s
@@ -484,14 +483,15 @@ class InferenceNode(Node):
         base = namespace.rstrip('/')
         return [n for n in ('odom', 'reference') if not self.count_publishers(f'{base}/{n}')]
 
-    def _missing_warning(self, v: str, missing: list[str], for_s: float, topics) -> str:
+    def _missing_warning(self, v: str, missing: list[str], for_s: float, flying: list[str]) -> str:
+        """The warning of vehicle ``v``, whose ``missing`` inputs nothing has published for
+        ``for_s`` s, with the hint of the namespaces ``flying`` (:meth:`_flying_elsewhere`)."""
         ns = self.vehicle_ns[v]
         base = ns.rstrip('/')
         what = ' and '.join(f'{base}/{n}' for n in missing)
         text = f'{ns}: nothing publishes {what} (for {for_s:.0f} s)'
         if v in self._discovered:
             return text + ': the vehicle fell silent'
-        flying = self._flying_elsewhere(ns, topics)
         if flying:
             self._hinted.add(v)
             shown = ', '.join(flying[:5]) + (', ...' if len(flying) > 5 else '')

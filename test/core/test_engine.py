@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cloe_ros.core.algorithms import make_estimator
-from cloe_ros.core.engine import NS, UNPAIRED_SPAN_NS, EngineConfig, VehicleEngine
+from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.estimator import (
     SM_GAINS_TABLE1,
     CloeEstimator,
@@ -19,6 +19,7 @@ from cloe_ros.core.estimator import (
 from cloe_ros.core.kinematics import state_to_odometry, wrap_angle, yaw_quaternion
 from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
 from cloe_ros.core.simulator import QuadrotorSimulator, get_scenario
+from cloe_ros.core.timeline import UNPAIRED_SPAN_NS
 
 T0 = 1_700_000_000 * NS  # an epoch-like start, as on real recordings
 

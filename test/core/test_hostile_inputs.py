@@ -9,16 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cloe_ros.core.engine import (
-    MAX_PLAN_POSES,
-    MISSING_WINDOW,
-    NS,
-    EngineConfig,
-    VehicleEngine,
-)
+from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.estimator import EstimatorConfig
 from cloe_ros.core.model import QUADROTOR_MAX_ACCELERATION, QUADROTOR_MAX_SPEED
 from cloe_ros.core.samples import MAX_STAMP_NS, PathSample
+from cloe_ros.core.timeline import MISSING_WINDOW
+from cloe_ros.core.validation import MAX_PLAN_POSES
 from cloe_ros.io.outputs import OutputConfig, OutputEncoder, parameter_vector
 from test.core.test_engine import (
     _run_with_a_glitch,

@@ -208,8 +208,16 @@ class VehicleStats:
     predictions: int = 0
     predictions_withheld: int = 0
     untracked_steps: int = 0  # steps with a reference channel not tracked
-    last_error_norm: float = float('nan')
     last_stamp_ns: int | None = None
+    #: The last estimate (its error's norm is worked out when asked: diagnostics ask once a
+    #: report, the engine makes one a step).
+    last_estimate: Estimate | None = field(default=None, repr=False)
+
+    @property
+    def last_error_norm(self) -> float:
+        """``|zeta - zeta_hat|`` of the last estimate, in mixed units (nan before any)."""
+        e = self.last_estimate
+        return float('nan') if e is None else math.hypot(*e.error.tolist())
 
 
 #: Numerical failures of a step (the estimator restarts, counted as ``diverged``).
@@ -308,15 +316,16 @@ class VehicleEngine:
         self._covariance = ErrorCovariance(self.step_s)  # the estimate's error statistics
         self._trust: TrustStatus | None = None
 
-    @property
-    def config(self) -> EngineConfig:
-        return self._config
+    def update_config(self, config: EngineConfig) -> None:
+        """New settings at run time: the timing tolerances (``max_gap``, ``reference_timeout``,
+        ``reference_wait``, ``quaternion_tolerance``) apply at once, the estimator's as
+        :meth:`update_estimator` says. (A new rate, prediction or anticipation setting makes a
+        new engine: those are read-only in the node, or restart it.)"""
+        self._set_config(replace(config, estimator=self.config.estimator))
+        self.update_estimator(config.estimator)
 
-    @config.setter
-    def config(self, config: EngineConfig) -> None:
-        """New settings (the node changes the timing tolerances at run time): the timeline's
-        too."""
-        self._config = self._timeline.config = config
+    def _set_config(self, config: EngineConfig) -> None:
+        self.config = self._timeline.config = config
 
     # ----------------------------------------------------------------------------- inputs
 
@@ -328,16 +337,6 @@ class VehicleEngine:
     def child_frame(self) -> str:
         """The body frame of the first accepted odometry ('' before it)."""
         return self._timeline.child_frame
-
-    @property
-    def _odom(self) -> deque[tuple[int, np.ndarray]]:
-        """The odometry accepted and not yet stepped past: (stamp, state) in stamp order."""
-        return self._timeline.odom
-
-    @property
-    def _refs(self) -> deque[tuple[int, np.ndarray]]:
-        """The references accepted and not yet stepped past: (stamp, r) in stamp order."""
-        return self._timeline.refs
 
     def _check_frame(self, frame_id: str) -> str | None:
         """What is wrong with ``frame_id`` (:class:`~cloe_ros.core.validation.WorldFrame`); None
@@ -498,7 +497,7 @@ class VehicleEngine:
         old = self.config.estimator
         if config == old:
             return
-        self.config = replace(self.config, estimator=config)
+        self._set_config(replace(self.config, estimator=config))
         if self._anticipator is not None and config.ground_altitude != old.ground_altitude:
             self._anticipator.set_ground_altitude(config.ground_altitude)
         iv = config.algorithm == 'cloe_iv'
@@ -679,7 +678,7 @@ class VehicleEngine:
         e.error_variance = variance.copy()
         self.stats.steps += 1
         self.stats.last_stamp_ns = t_ns
-        self.stats.last_error_norm = math.hypot(*e.error.tolist())
+        self.stats.last_estimate = e
         if self._trust is not None and not self._trust.all_tracked:
             self.stats.untracked_steps += 1
         if self._window:

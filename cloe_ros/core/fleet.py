@@ -225,7 +225,7 @@ class Fleet:
             for engine in engines:
                 step = engine.next_step(False, out[engine.name])
                 if step is not None:
-                    est = engine.estimator
+                    est = engine._est  # (the property without its call, per vehicle-step)
                     where = id(est.pool) if isinstance(est, PooledEstimator) else id(engine)
                     batches.setdefault(where, []).append((engine, step))
             engines = []

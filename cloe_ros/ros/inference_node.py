@@ -29,7 +29,6 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import replace
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -350,8 +349,7 @@ class InferenceNode(Node):
             else:
                 # timing tolerances at once; the estimator keeps its state and model unless an
                 # identifier setting of cloe_iv changed (VehicleEngine.update_estimator)
-                engine.config = replace(engine_config, estimator=engine.config.estimator)
-                engine.update_estimator(engine_config.estimator)
+                engine.update_config(engine_config)
             if 'parameters_rate' in changed:
                 self.encoders[v] = OutputEncoder(output_config, v, self.encoders[v].predictions)
         if restart:

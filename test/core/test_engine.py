@@ -191,6 +191,23 @@ def test_forward_time_jump_restarts_the_estimator_and_keeps_the_model(flight):
     np.testing.assert_array_equal(after.theta_hat, before.theta_hat)  # model kept
 
 
+def test_a_new_max_gap_at_run_time_decides_the_next_jump(flight):
+    """update_config (the node's runtime change of a timing tolerance) reaches the timeline: a
+    2 s hole is a time jump for max_gap 1 s, and not once max_gap is 3 s."""
+    odoms, refs = messages(flight)
+    holed = odoms[:500] + odoms[700:]  # (2 s of odometry never came)
+    jumps = {}
+    for max_gap in (1.0, 3.0):
+        engine = VehicleEngine(EngineConfig(max_gap=1.0))
+        sequence = in_time_order(holed, refs)
+        run(engine, sequence[:400])
+        engine.update_config(replace(engine.config, max_gap=max_gap))
+        run(engine, sequence[400:])
+        assert engine.config.max_gap == max_gap
+        jumps[max_gap] = engine.stats.time_jumps
+    assert jumps == {1.0: 1, 3.0: 0}
+
+
 def test_backward_time_jump_starts_a_new_timeline(flight):
     odoms, refs = messages(flight)
     engine = VehicleEngine(EngineConfig())
@@ -661,7 +678,7 @@ def test_one_input_without_the_other_is_kept_for_a_bounded_span(flight):
     engine = VehicleEngine(EngineConfig())
     run(engine, [('odom', m) for s, m in odoms if s < late[0][0]])
     assert not engine.started
-    assert len(engine._odom) == UNPAIRED_SPAN_NS // (NS // 100) + 1  # not the 1500 received
+    assert len(engine._timeline.odom) == UNPAIRED_SPAN_NS // (NS // 100) + 1  # (of 1500)
     got = run(engine, in_time_order([(s, m) for s, m in odoms if s >= late[0][0]], late))
     kept = [(s, m) for s, m in odoms if s >= late[0][0] - UNPAIRED_SPAN_NS]
     fresh = VehicleEngine(EngineConfig())
@@ -679,5 +696,5 @@ def test_one_input_without_the_other_is_kept_for_a_bounded_span(flight):
     out = run(engine, in_time_order(odoms[:500], [(s, m) for s, m in refs if s < odoms[500][0]]))
     run(engine, [('ref', m) for s, m in refs if s >= odoms[500][0]])
     assert engine.started and out
-    assert len(engine._refs) <= UNPAIRED_SPAN_NS // (NS // 50) + 1  # not the 750 received
-    assert engine._refs[-1][0] == refs[-1][0]
+    assert len(engine._timeline.refs) <= UNPAIRED_SPAN_NS // (NS // 50) + 1  # (of 750)
+    assert engine._timeline.refs[-1][0] == refs[-1][0]

@@ -34,10 +34,11 @@ interval early and after the odometry of its stamp: it applies from the next ste
 Restarts. At a jump in time or in space that the next odometry confirms (the timeline's module
 docstring), the steps of the old timeline are finished and the estimator is re-initialised on the
 new data (the identified model is kept); a jump backwards (a restarted simulation or bag) also
-drops the plan. A latched reference of a restarted source, published before its odometry, is so
-kept for the new timeline. When the world frame learnt from the first input is learnt again (that
-input was an outlier), everything accepted in the old frame is dropped and the estimator restarts
-without its model. A numerical failure restarts the estimator at the next step, without its model.
+drops the plan; the references the timeline held aside for being behind it (a latched reference
+of a restarted source, published before its odometry) become the new timeline's. When the world
+frame learnt from the first input is learnt again (that input was an outlier), everything
+accepted in the old frame is dropped and the estimator restarts without its model. A numerical
+failure restarts the estimator at the next step, without its model.
 """
 
 from __future__ import annotations
@@ -98,7 +99,8 @@ class EngineConfig:
             ``'stamps'``: until a reference at or after the step has arrived.
         max_gap: Odometry gap (s) treated as a time jump, forwards or backwards.
         world_frame: Required ``header.frame_id``; empty: the first frame seen, then that one.
-        quaternion_tolerance: Largest accepted ``| ||q|| - 1 |``.
+        quaternion_tolerance: Largest accepted ``| ||q|| - 1 |``, below 1 (a zero quaternion
+            has no orientation).
         prediction: Horizon, pose spacing and rate of the anticipated paths.
         anticipation: Intent, reference trust, guard and radius of the predictions
             (:mod:`cloe_ros.core.anticipation`).
@@ -118,8 +120,8 @@ class EngineConfig:
     def __post_init__(self) -> None:
         check_fields(self, 'engine')  # defaults and ranges: cloe_ros.settings
         tolerance = self.quaternion_tolerance
-        if not (math.isfinite(tolerance) and 0.0 <= tolerance <= 1.0):
-            msg = f'quaternion_tolerance must be within [0, 1], got {tolerance!r}'
+        if not (math.isfinite(tolerance) and 0.0 <= tolerance < 1.0):
+            msg = f'quaternion_tolerance must be within [0, 1), got {tolerance!r}'
             raise ConfigError(msg)
 
     @functools.cached_property
@@ -270,6 +272,7 @@ class VehicleEngine:
         name: str = '',
         estimator_factory: EstimatorFactory = make_estimator,
         namespace: str | None = None,
+        stats: VehicleStats | None = None,
     ) -> None:
         self.name = name
         #: The vehicle's namespace as a recording shows it ('/' for the root; default: ``name``,
@@ -279,12 +282,13 @@ class VehicleEngine:
         # (the prediction settings are read-only in the node, and a new rate makes new engines:
         # the shift holds for the engine's life)
         self._prediction_offset_ns = prediction_offset_ns(config, self.namespace)
-        self.stats = VehicleStats()
+        # (the engine's counters and its timeline's: one object for the engine's life)
+        self._stats = VehicleStats() if stats is None else stats
         self._factory = estimator_factory
         self._frame = WorldFrame(config.world_frame)
-        self._timeline = Timeline(config, self.stats, self._rejected, self._end_timeline,
+        self._timeline = Timeline(config, self._stats, self._rejected, self._end_timeline,
                                   lambda: self._est is not None)  # fmt: skip
-        self.config = config
+        self._config = config
         self.fleet: Fleet | None = None  # (set by Fleet.add)
         self._est = None
         self._model: tuple[np.ndarray, np.ndarray] | None = None  # theta_hat, L to restart with
@@ -316,16 +320,27 @@ class VehicleEngine:
         self._covariance = ErrorCovariance(self.step_s)  # the estimate's error statistics
         self._trust: TrustStatus | None = None
 
+    @property
+    def config(self) -> EngineConfig:
+        """The engine's settings (:meth:`update_config` changes them at run time)."""
+        return self._config
+
+    @property
+    def stats(self) -> VehicleStats:
+        """The vehicle's counters (``stats`` of the constructor: a node that makes a new engine
+        for a vehicle, at a change of algorithm or rate, goes on counting in the old one's)."""
+        return self._stats
+
     def update_config(self, config: EngineConfig) -> None:
         """New settings at run time: the timing tolerances (``max_gap``, ``reference_timeout``,
         ``reference_wait``, ``quaternion_tolerance``) apply at once, the estimator's as
         :meth:`update_estimator` says. (A new rate, prediction or anticipation setting makes a
         new engine: those are read-only in the node, or restart it.)"""
-        self._set_config(replace(config, estimator=self.config.estimator))
+        self._set_config(replace(config, estimator=self._config.estimator))
         self.update_estimator(config.estimator)
 
     def _set_config(self, config: EngineConfig) -> None:
-        self.config = self._timeline.config = config
+        self._config = self._timeline.config = config
 
     # ----------------------------------------------------------------------------- inputs
 
@@ -348,7 +363,7 @@ class VehicleEngine:
         if verdict == FRAME_MOVED:
             self._drop_inputs()
         elif verdict == FRAME_RELEARNT:
-            self.stats.frames_relearnt += 1
+            self._stats.frames_relearnt += 1
             self._stop_estimator()
             self._drop_inputs()
             self._model = None
@@ -363,7 +378,7 @@ class VehicleEngine:
 
     def _rejected(self, rejection: Rejection) -> Rejection:
         """Count and keep ``rejection`` (of an input, now or later: a held one), for the logs."""
-        self.stats.rejected[str(rejection)] += 1
+        self._stats.rejected[str(rejection)] += 1
         self._rejections.append(rejection)
         return rejection
 
@@ -381,8 +396,8 @@ class VehicleEngine:
         """Accept an odometry sample; returns the reason if it was rejected. A sample that jumps
         in time or in space is held aside (None is returned) until the next one decides
         (:mod:`cloe_ros.core.timeline`)."""
-        self.stats.odom_received += 1
-        zeta, rejection = check_odometry(sample, self.config.quaternion_tolerance)
+        self._stats.odom_received += 1
+        zeta, rejection = check_odometry(sample, self._config.quaternion_tolerance)
         if rejection is None:
             wrong = self._check_frame(sample.frame_id)
             if wrong:
@@ -402,8 +417,8 @@ class VehicleEngine:
         """Accept a reference sample (position and yaw); returns the reason if rejected. One that
         jumps in time is held aside (None is returned) until the odometry or the next reference
         decides (:mod:`cloe_ros.core.timeline`)."""
-        self.stats.reference_received += 1
-        r, rejection = check_reference(sample, self.config.quaternion_tolerance)
+        self._stats.reference_received += 1
+        r, rejection = check_reference(sample, self._config.quaternion_tolerance)
         if rejection is not None:
             return self._rejected(rejection)
         wrong = self._check_frame(sample.frame_id)
@@ -416,14 +431,14 @@ class VehicleEngine:
         it is decoded (counted as :meth:`add_plan` counts it); None if it is not too long."""
         if poses <= MAX_PLAN_POSES:
             return None
-        self.stats.plans_received += 1
+        self._stats.plans_received += 1
         return self._rejected(long_plan(poses))
 
     def add_plan(self, sample: PathSample) -> Rejection | None:
         """Accept planned future references (poses stamped at future times); returns the reason
         if rejected. The latest plan is used for predictions until its last pose has passed."""
-        self.stats.plans_received += 1
-        refs, rejection = check_plan(sample, self.config.quaternion_tolerance)
+        self._stats.plans_received += 1
+        refs, rejection = check_plan(sample, self._config.quaternion_tolerance)
         if rejection is not None:
             return self._rejected(rejection)
         frame = self._frame.name
@@ -439,7 +454,7 @@ class VehicleEngine:
             return self._reject('stale plan', f'last pose at {seconds(stamps[-1])}, latest '
                                 f'input at {seconds(latest)}')  # fmt: skip
         self._plan = (np.asarray(stamps, dtype=np.int64), refs)
-        self.stats.plans_accepted += 1
+        self._stats.plans_accepted += 1
         return None
 
     def _end_timeline(self, kind: str, backward: bool) -> None:
@@ -469,7 +484,7 @@ class VehicleEngine:
         world frame learnt from the inputs is open again: the estimates of the inputs kept are
         in it, and the next input sets it; one in another frame drops the inputs kept (they were
         in the old frame)."""
-        self.stats.resets += 1
+        self._stats.resets += 1
         self._frame.reopen()
         self._forget_model()
 
@@ -494,15 +509,15 @@ class VehicleEngine:
         A change of algorithm, or of the ``cloe_iv`` identifier's settings (its filters and
         statistics are built for them), restarts the estimator and forgets the model. ``l_initial``
         applies from the next (re)start."""
-        old = self.config.estimator
+        old = self._config.estimator
         if config == old:
             return
-        self._set_config(replace(self.config, estimator=config))
+        self._set_config(replace(self._config, estimator=config))
         if self._anticipator is not None and config.ground_altitude != old.ground_altitude:
             self._anticipator.set_ground_altitude(config.ground_altitude)
         iv = config.algorithm == 'cloe_iv'
         if config.algorithm != old.algorithm or (iv and config.identifier != old.identifier):
-            self.stats.resets += 1  # (a restart the user asked for; the frame is kept)
+            self._stats.resets += 1  # (a restart the user asked for; the frame is kept)
             self._forget_model()
             return
         est = self._est
@@ -563,7 +578,7 @@ class VehicleEngine:
         if first is None:
             return None
         t0, zeta, r = first
-        config = self.config.estimator
+        config = self._config.estimator
         iv = config.algorithm == 'cloe_iv'
         if iv and self._model is not None and not unstable_blocks(self._model[0]):
             # after a time jump the IV identifier starts over from its last (stable) estimate
@@ -653,7 +668,7 @@ class VehicleEngine:
 
     def _diverged(self, t_ns: int | None) -> None:
         """The estimator failed numerically at ``t_ns``: count it, restart at the next step."""
-        self.stats.diverged += 1
+        self._stats.diverged += 1
         self._timeline.t_ns = t_ns
         self._forget_model()
 
@@ -676,19 +691,19 @@ class VehicleEngine:
         if variance is None:
             variance = self._covariance.update(zeta, e.zeta_hat, e.gain_l)
         e.error_variance = variance.copy()
-        self.stats.steps += 1
-        self.stats.last_stamp_ns = t_ns
-        self.stats.last_estimate = e
+        self._stats.steps += 1
+        self._stats.last_stamp_ns = t_ns
+        self._stats.last_estimate = e
         if self._trust is not None and not self._trust.all_tracked:
-            self.stats.untracked_steps += 1
+            self._stats.untracked_steps += 1
         if self._window:
             self._history.append((e.zeta_hat, used))
         if self._anticipator is not None:
             if self._t0_ns is None:
                 self._t0_ns = t_ns
             self._anticipator.observe((t_ns - self._t0_ns) / NS, zeta, e.zeta_hat, used, r)
-        if self.config.prediction.enabled:
-            slot = (t_ns - self._prediction_offset_ns) // round(NS / self.config.prediction.rate)
+        if self._config.prediction.enabled:
+            slot = (t_ns - self._prediction_offset_ns) // round(NS / self._config.prediction.rate)
             # a new period: a later one, or any other after a jump back in time
             if slot != self._prediction_slot:
                 self._prediction_slot = slot
@@ -725,7 +740,7 @@ class VehicleEngine:
         gain) is low-passed (2 s) while that channel's reference is still (below 5 cm/s or
         0.05 rad/s), and held while it moves, when ``pos - g r`` is tracking lag, not offset.
         """
-        h = self.config.step_ns / NS
+        h = self._config.step_ns / NS
         r = r.tolist()
         previous, self._offset_prev_r = self._offset_prev_r, r
         if previous is None:
@@ -752,7 +767,7 @@ class VehicleEngine:
             e.prediction_note = (
                 f'withheld: the identified model is unstable ({", ".join(unstable)})'
             )
-            self.stats.predictions_withheld += 1
+            self._stats.predictions_withheld += 1
             return
         ant = self._anticipator
         t = (e.stamp_ns - self._t0_ns) / NS
@@ -783,18 +798,18 @@ class VehicleEngine:
         anticipation = yield from ant.combine_steps(t, states[:, POSITION], e.measured, coupling,
                                                     center)  # fmt: skip
         states[:, POSITION] = anticipation.positions
-        step_ns = round(self.config.prediction.step * NS)
+        step_ns = round(self._config.prediction.step * NS)
         stamps = e.stamp_ns + step_ns * np.arange(1, len(states) + 1, dtype=np.int64)
         n = int(np.searchsorted(stamps, MAX_STAMP_NS, side='right'))
         if n == 0:  # the first pose is later than any stamp a message can carry
             e.prediction_status = PREDICTION_WITHHELD
             e.prediction_note = 'withheld: its stamps are beyond the largest a message carries'
-            self.stats.predictions_withheld += 1
+            self._stats.predictions_withheld += 1
             return
         e.prediction_radius = anticipation.radius[:n]
         e.prediction_weights = anticipation.weights[:n]
         e.prediction = (stamps[:n], states[:n])
-        self.stats.predictions += 1
+        self._stats.predictions += 1
         if e.identification is None:
             e.prediction_status = PREDICTION_PROVISIONAL
             e.prediction_note = 'provisional: this algorithm does not check identifiability'
@@ -830,9 +845,9 @@ class VehicleEngine:
         states = np.array([p[0] for p in pick])
         refs = np.array([p[1] for p in pick]) + shift
         b = yield from self._predictor.recent_offset_steps(
-            theta, coupling, states, refs, self._every / self.config.rate
+            theta, coupling, states, refs, self._every / self._config.rate
         )
-        config = self.config.prediction
+        config = self._config.prediction
         fade = np.exp(-config.step * np.arange(config.n_poses) / config.disturbance_time)
         return fade[:, None] * b[None, :]
 
@@ -843,4 +858,4 @@ class VehicleEngine:
     @property
     def step_s(self) -> float:
         """The grid step, s."""
-        return self.config.step_ns / NS
+        return self._config.step_ns / NS

@@ -15,7 +15,7 @@ previous one on the same topic are rejected.
 
 Jumps. An odometry stamp more than ``max_gap`` from the previous one, forwards or backwards, is
 held aside, and so is one after a gap of more than ``HELD_INTERVALS`` typical intervals, or one out
-of a quadrotor's reach of the previous sample (``POSITION_JUMP``): the next odometry decides. If it
+of a quadrotor's reach of the previous sample (``JUMP_DISTANCE``): the next odometry decides. If it
 continues from the held sample, the jump is genuine: the timeline ends (its owner runs the steps
 the old timeline's odometry covers and stops its estimator), and a new one starts at the held
 sample; a jump backwards (a restarted simulation or bag) also drops the references of the old
@@ -56,7 +56,7 @@ NS = 1_000_000_000
 
 #: A sample farther from the previous one than this plus ``MAX_SPEED`` times the time between
 #: them is held aside like a jump in time: the next sample decides (a glitch, or the frame moved).
-POSITION_JUMP = 1.0  # m
+JUMP_DISTANCE = 1.0  # m
 #: An odometry gap longer than this many typical intervals (and ``MIN_HELD_GAP``), but shorter
 #: than ``max_gap``, is held aside too, so a single glitched stamp ahead costs one sample.
 HELD_INTERVALS = 10
@@ -82,13 +82,13 @@ UNPAIRED_SPAN_NS = 10 * NS
 #: Why a held input turned out to be an outlier.
 NOT_CONTINUED = 'the next one did not continue it'
 #: Kinds of held odometry: a jump in time, a gap of many intervals, a jump in space.
-TIME_JUMP, LONG_GAP, PLACE_JUMP = 'time jump', 'gap', 'position jump'
+TIME_JUMP, GAP, POSITION_JUMP = 'time jump', 'gap', 'position jump'
 
 
 def near(position, previous, dt_ns: int) -> bool:
     """Whether a quadrotor can be at ``position`` (x, y, z) ``dt_ns`` after ``previous``
     (x, y, z). (Scalar math: it runs for every sample.)"""
-    reach = POSITION_JUMP + MAX_SPEED * abs(dt_ns) / NS
+    reach = JUMP_DISTANCE + MAX_SPEED * abs(dt_ns) / NS
     dx = float(position[0]) - float(previous[0])
     dy = float(position[1]) - float(previous[1])
     dz = float(position[2]) - float(previous[2])
@@ -133,9 +133,9 @@ class GapCount:
         """Nothing publishes the odometry now: the next gap is a silence, not samples lost."""
         self._unpublished = True
 
-    def count(self, previous_ns: int, stamp_ns: int) -> int:
-        """The samples missing between two accepted stamps, as far as known now (gaps waiting
-        for the interval are counted once it is known)."""
+    def add(self, previous_ns: int, stamp_ns: int) -> int:
+        """Take the gap between two accepted stamps; returns the samples found missing (in it,
+        and in the gaps that waited for the interval, once it is known)."""
         dt = stamp_ns - previous_ns
         unpublished, self._unpublished = self._unpublished, False
         inside = 0
@@ -174,7 +174,7 @@ class Timeline:
     ``stats`` gets the inputs accepted, the samples missing and the jumps; ``reject(rejection)``
     is called for every input refused here (out of order, a duplicate, an outlier); ``end(kind,
     backward)`` is called when a held odometry sample is confirmed as a jump (``TIME_JUMP`` or
-    ``PLACE_JUMP``), before the old timeline's odometry is dropped: the owner runs the
+    ``POSITION_JUMP``), before the old timeline's odometry is dropped: the owner runs the
     steps it covers and stops its estimator; ``running()`` says whether an estimator runs (then
     odometry no reference pairs with yet is kept whatever its age: the estimator drops what it
     has stepped past)."""
@@ -197,7 +197,7 @@ class Timeline:
         self._anchor_exact = False  # (re)start exactly at _anchor_ns (after a reset)
         self._yaw: float | None = None  # the last accepted odometry's yaw, unwrapped
         self._held_odom: tuple[OdometrySample, np.ndarray] | None = None  # a jump, until the next
-        self._held_kind = ''  # why it is held: TIME_JUMP, LONG_GAP or PLACE_JUMP
+        self._held_kind = ''  # why it is held: TIME_JUMP, GAP or POSITION_JUMP
         self._interval_ns: float | None = None  # typical odometry interval
         self._ref_interval_ns: float | None = None  # typical reference interval
         self._held_refs: deque[tuple[int, np.ndarray]] = deque()  # references off the timeline
@@ -224,14 +224,14 @@ class Timeline:
             if 0 < dt <= gap and near(sample.position, held_sample.position, dt):
                 # the new timeline (or the new place) goes on from the held sample: genuine
                 self._held_odom = None
-                if self._held_kind in (TIME_JUMP, PLACE_JUMP):
+                if self._held_kind in (TIME_JUMP, POSITION_JUMP):
                     # the old timeline's last sample is about to be dropped: count the hole now
                     self._count_missing(self.odom[-1][0], held_ns)
                 if self._held_kind == TIME_JUMP:
                     self._time_jump(held_ns, backward=held_ns < self.odom[-1][0])
-                elif self._held_kind == PLACE_JUMP:
+                elif self._held_kind == POSITION_JUMP:
                     self.stats.position_jumps += 1
-                    self._end_timeline(PLACE_JUMP, False)
+                    self._close(POSITION_JUMP, False)
                     self._anchor_ns, self._anchor_exact = held_ns, False
                 self._accept(held_sample, held_zeta)
                 self._accept(sample, zeta)
@@ -253,9 +253,9 @@ class Timeline:
                     'out-of-order stamp', f'{seconds(stamp)}, {-dt / NS:.6g} s before the '
                     'previous one'))  # fmt: skip
             if dt > self._held_gap(self._interval_ns):
-                return self._hold(sample, zeta, LONG_GAP)
+                return self._hold(sample, zeta, GAP)
             if not near(sample.position, (previous[0], previous[4], previous[10]), dt):
-                return self._hold(sample, zeta, PLACE_JUMP)
+                return self._hold(sample, zeta, POSITION_JUMP)
             self._interval_ns = dt if self._interval_ns is None else (
                 self._interval_ns + 0.05 * (dt - self._interval_ns))  # fmt: skip
         self._accept(sample, zeta)
@@ -304,7 +304,7 @@ class Timeline:
         return None
 
     def _count_missing(self, previous_ns: int, stamp_ns: int) -> None:
-        self.stats.odom_missing += self.gaps.count(previous_ns, stamp_ns)
+        self.stats.odom_missing += self.gaps.add(previous_ns, stamp_ns)
 
     def _held_gap(self, interval_ns: float | None) -> float:
         """The forward gap (ns) beyond which a sample is held aside until the next one."""
@@ -323,7 +323,7 @@ class Timeline:
 
     def _held_outlier(self) -> str:
         """What the odometry sample held aside is, if the next one does not continue it."""
-        return 'position outlier' if self._held_kind == PLACE_JUMP else 'stamp outlier'
+        return 'position outlier' if self._held_kind == POSITION_JUMP else 'stamp outlier'
 
     def _reject_outlier(self, stamp_ns: int, reason: str, why: str) -> None:
         latest = self.latest_ns()
@@ -377,7 +377,9 @@ class Timeline:
 
     # ------------------------------------------------------------------------------ jumps
 
-    def _end_timeline(self, kind: str, backward: bool) -> None:
+    def _close(self, kind: str, backward: bool) -> None:
+        """End the timeline at a jump of ``kind``: its owner runs the steps its odometry covers
+        and stops its estimator (``end``), then the odometry goes."""
         self._end(kind, backward)
         self.odom.clear()
 
@@ -386,7 +388,7 @@ class Timeline:
         held aside become the new timeline's (else those stamped after ``new_stamp_ns`` are
         dropped: they are the old timeline's)."""
         self.stats.time_jumps += 1
-        self._end_timeline(TIME_JUMP, backward)
+        self._close(TIME_JUMP, backward)
         if backward:
             if self._held_refs and self._held_refs_backward:
                 self.refs.clear()
@@ -403,7 +405,7 @@ class Timeline:
         self.t_ns = None
 
     def restart_next(self) -> None:
-        """The grid starts over at its next step (after a reset)."""
+        """The grid starts over at its next step (a reset, a divergence, a new algorithm)."""
         if self.t_ns is not None:
             self._anchor_ns = self.t_ns + self.config.step_ns
             self._anchor_exact = True

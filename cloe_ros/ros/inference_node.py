@@ -394,10 +394,10 @@ class InferenceNode(Node):
     def _make_vehicle(self, vehicle: str, keep_stats: bool = False) -> None:
         old = self.engines.get(vehicle)
         self.vehicle_ns[vehicle] = namespace = self._namespace(vehicle)
-        engine = VehicleEngine(self.engine_config, name=vehicle, namespace=namespace)
-        if keep_stats and old is not None:
-            engine.stats = old.stats
-            engine.stats.resets += 1
+        stats = old.stats if keep_stats and old is not None else None
+        engine = VehicleEngine(self.engine_config, name=vehicle, namespace=namespace, stats=stats)
+        if stats is not None:
+            stats.resets += 1
         self.fleet.add(engine)  # (replacing the old engine, whose estimator leaves its pool)
         self.encoders[vehicle] = OutputEncoder(
             self.output_config, vehicle, self.engine_config.prediction.enabled

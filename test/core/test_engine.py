@@ -350,6 +350,8 @@ def test_after_a_reset_the_inputs_kept_are_in_the_frame_they_came_in(flight):
         ({'rate': float('nan')}, 'rate must be within'),
         ({'max_gap': -1.0}, 'max_gap must be within'),
         ({'reference_timeout': 1e9}, 'reference_timeout must be within'),
+        # (1 would accept a zero quaternion, which has no orientation: no yaw to take)
+        ({'quaternion_tolerance': 1.0}, r'quaternion_tolerance must be within \[0, 1\)'),
     ],
 )
 def test_invalid_engine_config_is_refused(kwargs, message):

@@ -145,13 +145,13 @@ def test_a_confirmed_time_jump_ends_the_timeline_once_and_an_unconfirmed_one_is_
 
 def test_the_gap_count_waits_for_the_interval_then_counts_what_never_arrived():
     gaps = GapCount()
-    assert gaps.count(0, 5 * STEP) == 0  # a hole first: the interval is not known yet
+    assert gaps.add(0, 5 * STEP) == 0  # a hole first: the interval is not known yet
     stamp = 5 * STEP
     for _ in range(MISSING_BASIS - 1):
-        assert gaps.count(stamp, stamp + STEP) == 0
+        assert gaps.add(stamp, stamp + STEP) == 0
         stamp += STEP
-    assert gaps.count(stamp, stamp + STEP) == 4  # now it is: the first hole lost four samples
+    assert gaps.add(stamp, stamp + STEP) == 4  # now it is: the first hole lost four samples
     gaps.rejected(stamp + 3 * STEP)  # one arrived in the next hole, and was refused
-    assert gaps.count(stamp + STEP, stamp + 5 * STEP) == 2
+    assert gaps.add(stamp + STEP, stamp + 5 * STEP) == 2
     gaps.unpublished()  # nothing published the odometry over the next gap: a silence
-    assert gaps.count(stamp + 5 * STEP, stamp + 50 * STEP) == 0
+    assert gaps.add(stamp + 5 * STEP, stamp + 50 * STEP) == 0

@@ -536,6 +536,27 @@ def _feed(node, flight, ks, replica):
     return out
 
 
+def test_a_restart_for_a_new_algorithm_goes_on_counting_every_input(context, flight):
+    """A change of algorithm makes new engines that keep the vehicles' counters: the inputs
+    accepted after it are counted with those before, in /diagnostics' counters."""
+    inf = InferenceNode(context=context)
+    replica = VehicleEngine(inf.engine_config)
+    try:
+        _feed(inf, flight, range(100), replica)
+        old = inf.engines['']
+        (result,) = inf.set_parameters([Parameter('algorithm', value='cloe_sm')])
+        assert result.successful, result.reason
+        assert inf.engines[''] is not old
+        _feed(inf, flight, range(100, 250), replica)
+        s = inf.engines[''].stats
+        assert s.resets == 1 and s.odom_received == s.odom_accepted == 250
+        assert s.reference_received == s.reference_accepted == 250
+        values = dict(inf.vehicle_status('', 0.0).values)
+        assert values['resets'] == '1'
+    finally:
+        inf.destroy_node()
+
+
 def test_runtime_changes_keep_the_identified_model(context, flight):
     """cloe_iv (the default): a change that does not concern the identifier keeps its state and
     model; an identifier setting restarts the estimator (README, "The nodes")."""

@@ -34,7 +34,7 @@ from cloe_ros.core.evaluation import (
     score_flight,
 )
 from cloe_ros.errors import CloeError
-from cloe_ros.io.config import build_configs, load_settings
+from cloe_ros.io.config import command_settings
 
 #: Column labels of the predictors.
 LABELS = {
@@ -140,9 +140,7 @@ def _row(values: np.ndarray) -> str:
 
 
 def run_corpus(args) -> int:
-    settings = load_settings(args.config, args.node) if args.config else {}
-    settings = {k: v for k, v in settings.items() if k != 'vehicles'}
-    build_configs(settings)
+    settings = command_settings(args.config, args.node)
     if args.json:
         check_new_file(args.json, args.force, '--json')
     worker_count(args.jobs, 1)  # a bad --jobs is an error before the bags are searched

@@ -40,7 +40,7 @@ from cloe_ros.core.simulator import (
     QuadrotorSimulator,
     true_parameters,
 )
-from cloe_ros.io.config import build_configs, load_settings
+from cloe_ros.io.config import build_configs, command_settings
 
 BLOCK_NAMES = [b.name for b in BLOCKS]
 #: Why the engine withholds a prediction.
@@ -52,9 +52,7 @@ WITHHELD_BECAUSE = (
 def resolve_settings(args: argparse.Namespace) -> dict:
     """The --config file's settings; sets ``args.algorithms`` and ``args.rate`` from it where the
     command line does not give them (else the defaults). Refuses bad values before any work."""
-    settings = load_settings(args.config, args.node) if args.config else {}
-    settings = {k: v for k, v in settings.items() if k != 'vehicles'}
-    build_configs(settings)
+    settings = command_settings(args.config, args.node)
     if args.algorithms is None:
         args.algorithms = (
             [settings['algorithm']] if 'algorithm' in settings else DEFAULT_ALGORITHMS[args.target]

@@ -33,7 +33,7 @@ from cloe_ros.core.engine import NS, VehicleEngine
 from cloe_ros.core.fleet import Fleet, RecordingBatches
 from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
-from cloe_ros.io.config import build_configs, load_settings
+from cloe_ros.io.config import build_configs, command_settings
 from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE, feed, input_routes
 from cloe_ros.io.outputs import LATCHED_QOS, OutputEncoder
 from cloe_ros.io.reader import BagError, BagReader
@@ -382,17 +382,6 @@ def _unusable(bag: Path, vehicle: str, engine: VehicleEngine, malformed: int, re
     )
 
 
-def _settings(args: argparse.Namespace) -> dict:
-    settings = load_settings(args.config, args.node) if args.config else {}
-    settings = {k: v for k, v in settings.items() if k not in ('vehicles',)}
-    if args.algorithm:
-        settings['algorithm'] = args.algorithm
-    if args.rate is not None:
-        settings['rate'] = args.rate
-    build_configs(settings)  # a bad setting is one error, before any bag is read
-    return settings
-
-
 def _print(result: InferResult, output: Path) -> None:
     """What ``cloe infer`` prints of a run: per vehicle, what was written, and a warning per
     vehicle that gave no estimate."""
@@ -418,7 +407,8 @@ def _print(result: InferResult, output: Path) -> None:
 
 def run(args: argparse.Namespace) -> int:
     worker_count(args.jobs, len(args.bag))  # a bad --jobs is an error before any work
-    settings = _settings(args)
+    # (a bad setting is one error, before any bag is read)
+    settings = command_settings(args.config, args.node, algorithm=args.algorithm, rate=args.rate)
     if len(args.bag) > 1:
         return _run_many(args, settings)
     bar = ProgressBar(enabled=not args.quiet)

@@ -47,7 +47,7 @@ from cloe_ros.core.metrics import (
 from cloe_ros.core.model import BLOCK_SLICES, BLOCKS, N_PARAMS, PARAMETER_NAMES, block_matrices
 from cloe_ros.errors import CloeError
 from cloe_ros.io import messages
-from cloe_ros.io.config import DEFAULTS, build_configs, load_settings
+from cloe_ros.io.config import DEFAULTS, command_settings
 from cloe_ros.io.dataset import Predictions, Series, VehicleData, load_flight, vehicle_namespaces
 from cloe_ros.io.reader import BagReader
 
@@ -640,17 +640,6 @@ def _prepare_folder(folder: Path, bag: Path, force: bool) -> None:
     make_folder(folder)
 
 
-def _settings(args: argparse.Namespace) -> dict:
-    settings = load_settings(args.config, args.node) if args.config else {}
-    settings = {k: v for k, v in settings.items() if k not in ('vehicles',)}
-    if args.algorithm:
-        settings['algorithm'] = args.algorithm
-    if args.rate is not None:
-        settings['rate'] = args.rate
-    build_configs(settings)  # refuse bad values before any work
-    return settings
-
-
 def output_topics(topics: dict[str, str], namespaces: list[str]) -> list[str]:
     """Topics of inference outputs (``<ns>/<output_ns>/state|parameters|prediction``)."""
     found = []
@@ -689,7 +678,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.monotonic()
     bag: Path = args.bag
     folder: Path = args.output or Path(f'{bag.resolve().name or "bag"}_report')
-    settings = _settings(args) if (args.algorithm or args.rate is not None or args.config) else {}
+    settings = command_settings(args.config, args.node, algorithm=args.algorithm, rate=args.rate)
     with BagReader(bag) as reader:
         topics = {name: info.msgtype for name, info in reader.topics.items()}
         counts = {name: info.count for name, info in reader.topics.items()}

@@ -122,6 +122,20 @@ def load_settings(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any
     return data
 
 
+def command_settings(
+    path: str | Path | None, node_name: str = NODE_NAME, **overrides: Any
+) -> dict[str, Any]:
+    """The settings an offline command runs with: those the parameter file ``path`` gives the
+    node ``node_name`` (none without a file) but ``vehicles`` (the command finds its vehicles in
+    the bag), with the ``overrides`` that are not None (the command line's ``algorithm`` or
+    ``rate``). Checked now: a bad value is one :class:`SettingsError`, before any work."""
+    settings = load_settings(path, node_name) if path else {}
+    settings = {k: v for k, v in settings.items() if k != 'vehicles'}
+    settings.update({k: v for k, v in overrides.items() if v is not None})
+    build_configs(settings)
+    return settings
+
+
 def _node_parameters(data: dict[str, Any], node_name: str, path: Path) -> dict[str, Any]:
     """The parameters of ``data`` (a parameter file's mapping) for the node ``node_name``: its
     ``/**`` section updated with its own; ``data`` itself if it has no node section (a flat

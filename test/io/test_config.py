@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from cloe_ros.core.estimator import SM_GAINS_TABLE1
-from cloe_ros.io.config import DEFAULTS, RANGES, SettingsError, build_configs, load_settings
+from cloe_ros.io.config import (
+    DEFAULTS,
+    RANGES,
+    SettingsError,
+    build_configs,
+    command_settings,
+    load_settings,
+)
 
 
 @pytest.mark.parametrize(
@@ -164,3 +171,18 @@ def test_a_file_for_other_nodes_names_them_and_the_option(tmp_path, text, reason
         load_settings(path)
     assert str(info.value) == (f'{path} has parameters for {reason}, not for cloe_inference nor '
                                '/**: name the node to read with --node NAME')  # fmt: skip
+
+
+def test_a_command_takes_the_files_settings_but_its_vehicles_and_its_own_overrides(tmp_path):
+    """What ``cloe infer`` / ``report`` / ``evaluate`` run with: the file's settings for the node,
+    not its ``vehicles`` (a command finds them in the bag), the command line's values where given;
+    a bad value is refused before any work."""
+    path = tmp_path / 'p.yaml'
+    path.write_text('cloe_inference:\n  ros__parameters:\n    algorithm: cloe_sm\n    rate: 50.0\n'
+                    "    vehicles: ['/uav1']\n")  # fmt: skip
+    assert command_settings(path) == {'algorithm': 'cloe_sm', 'rate': 50.0}
+    assert command_settings(path, algorithm='cloe_iv', rate=None) == {
+        'algorithm': 'cloe_iv', 'rate': 50.0}  # fmt: skip
+    assert command_settings(None, rate=200.0) == {'rate': 200.0}
+    with pytest.raises(SettingsError, match='rate'):
+        command_settings(None, rate=0.0)

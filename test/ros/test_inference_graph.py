@@ -8,6 +8,7 @@ timed.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import zlib
@@ -189,6 +190,19 @@ def _executor(context, *nodes):
     return ex
 
 
+@contextlib.contextmanager
+def _spinning(context, *nodes):
+    """An executor of ``nodes`` for the ``with`` block; then it shuts down and the nodes are
+    destroyed, however the block ended."""
+    ex = _executor(context, *nodes)
+    try:
+        yield ex
+    finally:
+        ex.shutdown()
+        for n in nodes:
+            n.destroy_node()
+
+
 class Stderr:
     """What this test's processes wrote to stderr (pytest's ``capfd``), gathered as it comes."""
 
@@ -311,16 +325,12 @@ def test_publishers_missing_waits_for_the_timeout_as_the_warning_does(context):
     """Before publisher_timeout, a vehicle without publishers is neither WARN nor listed in its
     publishers_missing (the value agrees with the status and the node's without_publishers)."""
     inf = _inference(context, vehicles=['/uav9'], discovery_period=0.1, publisher_timeout=600.0)
-    ex = _executor(context, inf)
-    try:
+    with _spinning(context, inf) as ex:
         assert spin_until(ex, lambda: inf._missing['/uav9'] == ['odom', 'reference'], 30)
         status = inf.vehicle_status('/uav9', 0.0)
         assert dict(status.values)['publishers_missing'] == ''
         assert 'nothing publishes' not in status.message
         assert dict(inf.node_status().values)['without_publishers'] == ''
-    finally:
-        ex.shutdown()
-        inf.destroy_node()
 
 
 def test_a_listed_vehicle_without_publishers_is_warned_of(context, capfd):
@@ -329,9 +339,8 @@ def test_a_listed_vehicle_without_publishers_is_warned_of(context, capfd):
     inf = _inference(context, vehicles=['/uav1', '/uav9'], discovery_period=0.1,
                      publisher_timeout=0.5)  # fmt: skip
     helper = rclpy_node(context)
-    pubs = _vehicle_publishers(helper, '/uav1')
-    ex = _executor(context, inf, helper)
-    try:
+    _vehicle_publishers(helper, '/uav1')  # (the helper node holds them)
+    with _spinning(context, inf, helper) as ex:
         assert spin_until(ex, lambda: inf.node_status().level == 1, 30)
         assert dict(inf.node_status().values)['without_publishers'] == '/uav9'
         statuses = {v: inf.vehicle_status(v, 0.0) for v in inf.vehicles}
@@ -343,28 +352,18 @@ def test_a_listed_vehicle_without_publishers_is_warned_of(context, capfd):
         err = capfd.readouterr().err
         assert '/uav9: nothing publishes /uav9/odom and /uav9/reference' in err
         assert 'discover:=true' in err and '/uav1: nothing' not in err
-    finally:
-        ex.shutdown()
-        del pubs
-        for n in (inf, helper):
-            n.destroy_node()
 
 
 def test_no_list_while_namespaced_vehicles_fly_gives_a_hint(context, capfd):
     inf = _inference(context, discovery_period=0.1, publisher_timeout=0.5)
     helper = rclpy_node(context)
-    pubs = _vehicle_publishers(helper, '/uav1') + _vehicle_publishers(helper, '/uav2')
-    ex = _executor(context, inf, helper)
-    try:
+    for namespace in ('/uav1', '/uav2'):
+        _vehicle_publishers(helper, namespace)  # (the helper node holds them)
+    with _spinning(context, inf, helper) as ex:
         hint = 'set vehicles:=[/uav1, /uav2] or discover:=true'
         err = Stderr(capfd)
         assert spin_until(ex, lambda: err.has(hint), 30), err.text
         assert 'nothing publishes /odom and /reference' in err.text
-    finally:
-        ex.shutdown()
-        del pubs
-        for n in (inf, helper):
-            n.destroy_node()
 
 
 def test_no_list_gives_the_hint_when_the_vehicles_take_off_after_the_warning(context, capfd):
@@ -372,23 +371,17 @@ def test_no_list_gives_the_hint_when_the_vehicles_take_off_after_the_warning(con
     when namespaced vehicles take off later, it says so too (once), with the hint."""
     inf = _inference(context, discovery_period=0.1, publisher_timeout=0.5)
     helper = rclpy_node(context)
-    ex = _executor(context, inf, helper)
-    pubs = []
-    try:
+    with _spinning(context, inf, helper) as ex:
         err = Stderr(capfd)
         assert spin_until(ex, lambda: err.has('no vehicles:=[...] given'), 30), err.text
         assert 'nothing publishes /odom and /reference' in err.text and 'uav' not in err.text
-        pubs = _vehicle_publishers(helper, '/uav1') + _vehicle_publishers(helper, '/uav2')
+        for namespace in ('/uav1', '/uav2'):
+            _vehicle_publishers(helper, namespace)
         hint = 'set vehicles:=[/uav1, /uav2] or discover:=true'
         assert spin_until(ex, lambda: err.has(hint), 30), err.text
         spin_until(ex, lambda: False, 1.0)  # (more polls of the graph: no second hint)
         err.has('')
         assert err.text.count(hint) == 1, err.text
-    finally:
-        ex.shutdown()
-        del pubs
-        for n in (inf, helper):
-            n.destroy_node()
 
 
 def test_a_best_effort_publisher_is_named_with_the_setting_that_matches_it(context, capfd):
@@ -397,9 +390,8 @@ def test_a_best_effort_publisher_is_named_with_the_setting_that_matches_it(conte
     inf = _inference(context, vehicles=['/uav1'])
     helper = rclpy_node(context)
     offered = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
-    pub = helper.create_publisher(Odometry, '/uav1/odom', offered)
-    ex = _executor(context, inf, helper)
-    try:
+    helper.create_publisher(Odometry, '/uav1/odom', offered)
+    with _spinning(context, inf, helper) as ex:
         err = Stderr(capfd)
         # (the helper's own publisher logs an incompatible QoS too: wait for the node's words)
         words = 'a publisher offers a QoS incompatible'
@@ -407,18 +399,12 @@ def test_a_best_effort_publisher_is_named_with_the_setting_that_matches_it(conte
         assert ('/uav1/odom: a publisher offers a QoS incompatible with the subscription '
                 '(reliability); for a best-effort publisher set qos_reliability:=best_effort'
                 in err.text), err.text  # fmt: skip
-    finally:
-        ex.shutdown()
-        del pub
-        for n in (inf, helper):
-            n.destroy_node()
 
 
 def test_discovery_takes_up_vehicles_that_appear_and_reports_those_that_fall_silent(context):
     inf = _inference(context, discover=True, discovery_period=0.1, publisher_timeout=0.5)
     helper = rclpy_node(context)
-    ex = _executor(context, inf, helper)
-    try:
+    with _spinning(context, inf, helper) as ex:
         assert inf.vehicles == []  # nothing flies yet: no vehicle, not even the root one
         pubs = _vehicle_publishers(helper, '/uav3')
         # a namespace with odometry but no reference is not a vehicle
@@ -432,10 +418,6 @@ def test_discovery_takes_up_vehicles_that_appear_and_reports_those_that_fall_sil
             ex, lambda: dict(inf.node_status().values)['without_publishers'] == '/uav3', 30
         )
         assert inf.vehicles == ['/uav3'] and lone is not None
-    finally:
-        ex.shutdown()
-        for n in (inf, helper):
-            n.destroy_node()
 
 
 def test_load_is_the_share_of_wall_time_in_callbacks_and_the_worst_timer_delay():
@@ -484,8 +466,7 @@ def test_a_node_at_its_limit_says_so_and_recovers(context, capfd, where):
                      diagnostics_period=0.5, discovery_period=0.2, publisher_timeout=600.0,
                      batch_period=0.005 if batched else 0.0)  # fmt: skip
     helper = rclpy_node(context)
-    odom, _ = pubs = _vehicle_publishers(helper, '/uav1')
-    ex = _executor(context, inf, helper)
+    odom, _ = _vehicle_publishers(helper, '/uav1')
     owner, name = (inf.fleet, 'advance') if batched else (inf.engines['/uav1'], 'add_odometry')
     fast = getattr(owner, name)
 
@@ -503,7 +484,7 @@ def test_a_node_at_its_limit_says_so_and_recovers(context, capfd, where):
         return (status.level == 1 and 'at its limit' in status.message
                 and 'behind its inputs' in status.message)  # fmt: skip
 
-    try:
+    with _spinning(context, inf, helper) as ex:
         assert spin_until(ex, lambda: odom.get_subscription_count() >= 1, 30)
         assert spin_until(ex, overload_reported, 60), inf.node_status()
         status = inf.node_status()
@@ -516,11 +497,6 @@ def test_a_node_at_its_limit_says_so_and_recovers(context, capfd, where):
         err = capfd.readouterr().err
         assert f'{len(inf.vehicles)} vehicle(s):' in err and 'at its limit' in err
         assert 'keeps up with its inputs again' in err
-    finally:
-        ex.shutdown()
-        del pubs
-        for n in (inf, helper):
-            n.destroy_node()
 
 
 def rclpy_node(context):

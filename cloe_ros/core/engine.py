@@ -67,8 +67,8 @@ from cloe_ros.core.identifier import IDENTIFIED, NOT_IDENTIFIABLE, ROW_NAMES
 from cloe_ros.core.kinematics import unwrap_near
 from cloe_ros.core.model import unstable_blocks
 from cloe_ros.core.prediction import PredictionConfig, Predictor, plan_references
-from cloe_ros.core.samples import MAX_STAMP_NS, OdometrySample, PathSample, PoseSample
-from cloe_ros.core.timeline import NS, TIME_JUMP, Timeline
+from cloe_ros.core.samples import MAX_STAMP_NS, NS, OdometrySample, PathSample, PoseSample
+from cloe_ros.core.timeline import TIME_JUMP, Timeline
 from cloe_ros.core.validation import (
     FRAME_MOVED,
     FRAME_OTHER,

@@ -13,6 +13,7 @@ import numpy as np
 #: 2038-01-19, and nanoseconds), ns.
 MIN_STAMP_NS = -(2**31) * 1_000_000_000
 MAX_STAMP_NS = (2**31 - 1) * 1_000_000_000 + 999_999_999
+NS = 1_000_000_000  # ns per s
 
 
 @dataclass(frozen=True)

@@ -46,13 +46,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cloe_ros.core.kinematics import unwrap_near_one
-from cloe_ros.core.samples import OdometrySample
+from cloe_ros.core.samples import NS, OdometrySample
 from cloe_ros.core.validation import MAX_SPEED, Rejection, seconds
 
 if TYPE_CHECKING:
     from cloe_ros.core.engine import EngineConfig, VehicleStats
 
-NS = 1_000_000_000
 
 #: A sample farther from the previous one than this plus ``MAX_SPEED`` times the time between
 #: them is held aside like a jump in time: the next sample decides (a glitch, or the frame moved).

@@ -23,7 +23,7 @@ import numpy as np
 from cloe_ros.core import kernels
 from cloe_ros.core.kinematics import quaternion_yaw, quaternion_yaw_one
 from cloe_ros.core.model import QUADROTOR_MAX_RATE, QUADROTOR_MAX_SPEED
-from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
+from cloe_ros.core.samples import NS, OdometrySample, PathSample, PoseSample
 
 #: Bounds of plausible inputs, generous for any quadrotor in a local world frame; beyond them an
 #: input is rejected (such values overflow the estimator's statistics, or leave its model).
@@ -149,7 +149,7 @@ def long_plan(poses: int) -> Rejection:
 
 def seconds(stamp_ns: int) -> str:
     """A stamp in seconds, every nanosecond shown (``1700000001.230000000 s``)."""
-    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nsec = divmod(int(stamp_ns), NS)
     return f'{sec}.{nsec:09d} s'
 
 

@@ -11,8 +11,8 @@ import pytest
 
 from cloe_ros.core.engine import EngineConfig, VehicleStats
 from cloe_ros.core.kinematics import odometry_to_state_one, yaw_quaternion
-from cloe_ros.core.samples import OdometrySample, PathSample, PoseSample
-from cloe_ros.core.timeline import MISSING_BASIS, NS, TIME_JUMP, GapCount, Timeline
+from cloe_ros.core.samples import NS, OdometrySample, PathSample, PoseSample
+from cloe_ros.core.timeline import MISSING_BASIS, TIME_JUMP, GapCount, Timeline
 from cloe_ros.core.validation import (
     FRAME_MOVED,
     FRAME_OTHER,

@@ -112,22 +112,23 @@ def maximum(a, b):
 
 
 @_compiled.helper
-def einsum_dot(a, b):
-    """``np.einsum('j,j->', a, b)`` as numpy's x86-64 baseline (two-lane) loop adds it: two
+def einsum_dot(a, i, b, j, start, n):
+    """``np.einsum('j,j->', a[i, start:start + n], b[j, start:start + n])`` of rows ``i`` and
+    ``j`` of the 2-D ``a`` and ``b``, as numpy's x86-64 baseline (two-lane) loop adds it: two
     lanes, the even and the odd terms; blocks of eight terms taken from their last pair; then
-    the lanes added."""
-    n = a.shape[0]
+    the lanes added. (Indices, not the rows' views: a view in numba takes a reference to its
+    array and gives it back, which cost more than the sum in the kernels' inner loops.)"""
     even = odd = 0.0
-    j = 0
-    while n - j >= 8:
-        for q in (6, 4, 2, 0):
-            even = a[j + q] * b[j + q] + even
-            odd = a[j + q + 1] * b[j + q + 1] + odd
-        j += 8
-    while j < n:
-        even = a[j] * b[j] + even
-        odd = (a[j + 1] * b[j + 1] if j + 1 < n else 0.0) + odd
-        j += 2
+    q, end = start, start + n
+    while end - q >= 8:
+        for s in (6, 4, 2, 0):
+            even = a[i, q + s] * b[j, q + s] + even
+            odd = a[i, q + s + 1] * b[j, q + s + 1] + odd
+        q += 8
+    while q < end:
+        even = a[i, q] * b[j, q] + even
+        odd = (a[i, q + 1] * b[j, q + 1] if q + 1 < end else 0.0) + odd
+        q += 2
     return even + odd
 
 
@@ -211,11 +212,11 @@ def score_ensemble(pending_t, pending, offsets, since, now, t, data, channels, c
             weight = alpha if scored[k] else 1.0
             for i in range(m):  # (einsum's 'pmd,pnd->pmn' and 'pmd,pmd->pm')
                 for j in range(m):
-                    cross[k, i, j] += weight * (einsum_dot(err[i], err[j]) - cross[k, i, j])
+                    cross[k, i, j] += weight * (einsum_dot(err, i, err, j, 0, d) - cross[k, i, j])
             scored[k] = True
             slots[n], issued[n], horizons[n] = p, issue, k
             for i in range(m):
-                squared[n, i] = einsum_dot(err[i], err[i])
+                squared[n, i] = einsum_dot(err, i, err, i, 0, d)
             n += 1
         if issue + offsets[k_max - 1] <= until:  # every pose is due: done
             pending_t[p] = np.nan
@@ -257,20 +258,27 @@ def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, his
     ``d``, regressors ``phi``, instruments ``xi`` and targets ``y``, gated by ``gate`` and
     ``weight`` (1 where the numpy code does not multiply: a product by 1 is exact)."""
     n_vehicles, n_states = zeta.shape
+    n_refs = r.shape[1]
     n_channels = fx.shape[1]
     width = phi.shape[1] // y.shape[1]
     for n in range(n_vehicles):
         k = hist_next[n]
-        hist_z[n, k] = zeta[n]
-        hist_r[n, k] = r[n]
+        for i in range(n_states):
+            hist_z[n, k, i] = zeta[n, i]
+        for i in range(n_refs):
+            hist_r[n, k, i] = r[n, i]
         hist_active[n, k] = whole[n]
         hist_next[n] = (k + 1) % hist_z.shape[1]
         hist_count[n] += 1
         # auxiliary model, driven by the reference only
+        ad, bd_aux = aux_ad[n], aux_bd[n]
         for i in range(n_states):
-            x_new[i] = einsum_dot(aux_ad[n, i], x_aux[n]) + einsum_dot(aux_bd[n, i], r[n])
-        x_aux[n] = x_new
-        last_r[n] = r[n]
+            x_new[i] = (einsum_dot(ad, i, x_aux, n, 0, n_states)
+                        + einsum_dot(bd_aux, i, r, n, 0, n_refs))  # fmt: skip
+        for i in range(n_states):
+            x_aux[n, i] = x_new[i]
+        for i in range(n_refs):
+            last_r[n, i] = r[n, i]
         # channels: the measured state, the reference, the auxiliary model's state, zero
         for i in range(n_states):
             u[i] = zeta[n, i] / state_scale[i]
@@ -296,7 +304,9 @@ def iv_filter(zeta, r, whole, decay, hist_z, hist_r, hist_active, hist_next, his
                 s += fx[n, c, 1] * ad_t[1, q]
                 s += fx[n, c, 2] * ad_t[2, q]
                 fx_new[c, q] = s + u[c] * bd[q]
-        fx[n] = fx_new
+        for c in range(n_channels):
+            for q in range(3):
+                fx[n, c, q] = fx_new[c, q]
         f[n, n_channels] = decay[n]
         # regressors, instruments, targets
         for j in range(phi.shape[1]):
@@ -353,8 +363,7 @@ def iv_short_window(phi, xi, y, rows, left, right, h, mu_e, weight, short, res2,
     width = phi.shape[1] // n_rows
     for n in range(n_vehicles):
         for p in range(n_rows):
-            e = y[n, p] - einsum_dot(rows[n, p * width:(p + 1) * width],
-                                     phi[n, p * width:(p + 1) * width])  # fmt: skip
+            e = y[n, p] - einsum_dot(rows, n, phi, n, p * width, width)
             res2[n, p] = res2[n, p] * mu_e[n] + e * e * h
         weight_e[n] = weight_e[n] * mu_e[n] + h * weight[n]
         steps[n] += 1 if weight[n] else 0

@@ -28,9 +28,15 @@ rng = np.random.default_rng(0)
 for n in range(1, 30):  # einsum's sum of products, every length the identifier's steps use
     a, b = rng.normal(size=(2, 500, n))
     a[::7, 0] = 0.0
-    got = np.array([kernels.einsum_dot(x, y) for x, y in zip(a, b)])
+    got = np.array([kernels.einsum_dot(a, p, b, p, 0, n) for p in range(500)])
     assert np.array_equal(got, np.einsum('pj,pj->p', a, b)), n
     assert np.array_equal(got, np.einsum('npj,npj->np', a[None], b[None])[0]), n
+    # a span of the rows (its start and length), and rows i of a against rows j of b
+    wide_a, wide_b = rng.normal(size=(2, 40, n + 9))
+    start = n % 5
+    got = [kernels.einsum_dot(wide_a, i, wide_b, 39 - i, start, n) for i in range(40)]
+    want = np.einsum('pj,pj->p', wide_a[:, start:start + n], wide_b[::-1, start:start + n])
+    assert np.array_equal(got, want), n
 omegas = 2.0 * np.pi / np.geomspace(1.5, 30.0, 60)
 for v, n in ((1, 10), (7, 33), (20, 61)):  # the intent's harmonic fits: basis and residuals
     t = -np.sort(rng.uniform(0.0, 3.2, size=(v, n)), axis=1)
@@ -134,7 +140,7 @@ def test_the_kernels_compile_without_a_cache_where_numba_cannot_have_one(tmp_pat
         '    import cloe_ros.core.kernels as k\n'
         'import numpy as np\n'
         'print(k._compiled.cached, sum("cannot cache" in str(w.message) for w in caught),\n'
-        '      k.einsum_dot(np.ones(3), np.arange(3.0)))\n'
+        '      k.einsum_dot(np.ones((1, 3)), 0, np.arange(3.0)[None], 0, 0, 3))\n'
     )  # fmt: skip
     env = {**os.environ, 'PYTHONPATH': str(REPO)}
     done = subprocess.run([sys.executable, '-c', code], env=env, cwd=tmp_path,

@@ -911,7 +911,8 @@ def test_ctrl_c_starts_no_further_bag_and_says_what_was_written(sim_bag, tmp_pat
         rest, err = proc.communicate(timeout=120)
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
+    # (the command's whole output in the message: what it wrote after the signal, if anything)
+    assert proc.returncode == 130, f'stderr: {err!r}; stdout after the first bag: {rest!r}'
     assert 'Traceback' not in err, err
     *_, complete, missing, last = err.splitlines()
     assert last == 'interrupted'

@@ -143,7 +143,24 @@ def decode_odometry(raw: bytes | memoryview) -> OdometrySample:
 
 
 def decode_pose_stamped(raw: bytes | memoryview) -> PoseSample:
-    """A ``geometry_msgs/msg/PoseStamped``."""
+    """A ``geometry_msgs/msg/PoseStamped`` (7 doubles after one string)."""
+    if type(raw) is not bytes:
+        raw = bytes(raw)
+    end = len(raw)
+    # the common case, as decode_odometry's
+    if end >= 16 and raw[:2] == LITTLE[:2]:
+        sec, nanosec, n1 = _HEAD.unpack_from(raw, 4)
+        at = 16 + n1
+        start = at + (-(at - 4)) % 8
+        if (nanosec < NS and n1 and start + 56 <= end and end - start - 56 <= 3
+                and raw[at - 1] == 0):  # fmt: skip
+            try:
+                frame = raw[16 : at - 1].decode()
+            except UnicodeDecodeError:
+                pass
+            else:
+                d = np.frombuffer(raw, dtype='<f8', count=7, offset=start).copy()
+                return PoseSample(sec * NS + nanosec, frame, d[0:3], d[3:7])
     r = _Reader(raw, 'geometry_msgs/msg/PoseStamped')
     stamp = r.stamp_ns()
     frame = r.string()

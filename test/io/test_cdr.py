@@ -219,6 +219,29 @@ def _odometry_bytes(frame='world'):
 def test_bytes_that_are_not_odometry_are_a_clear_error(mangle, reason):
     with pytest.raises(MessageError, match=reason):
         messages.decode_odometry(mangle(_odometry_bytes()))
+    # the same header in a reference: its quick path takes none of them either
+    pose = cdr.encode_pose_stamped(PoseSample(5 * 10**9, 'world', np.zeros(3),
+                                              np.array([0, 0, 0, 1.0])))  # fmt: skip
+    with pytest.raises(MessageError, match=reason):
+        messages.decode_pose_stamped(mangle(pose))
+
+
+@pytest.mark.parametrize('frame', FRAMES)
+def test_a_reference_decodes_as_rosbags_decodes_it_whatever_its_frames_length(frame):
+    """Every alignment of the pose after the frame name, little and big endian (the big one
+    through the checking reader), as bytes and as a memoryview."""
+    rng = np.random.default_rng(len(frame))
+    q = rng.normal(size=4)
+    stamp = 1_700_000_000_123_456_789
+    sample = PoseSample(stamp, frame, rng.normal(size=3), q / np.linalg.norm(q))
+    raw = cdr.encode_pose_stamped(sample)
+    msg = TYPESTORE.deserialize_cdr(raw, messages.POSE_STAMPED)
+    big = bytes(TYPESTORE.serialize_cdr(msg, messages.POSE_STAMPED, little_endian=False))
+    for given in (raw, memoryview(raw), big):
+        got = cdr.decode_pose_stamped(given)
+        assert (got.stamp_ns, got.frame_id) == (sample.stamp_ns, frame)
+        assert list(got.position) == list(sample.position)
+        assert list(got.orientation) == list(sample.orientation)
 
 
 def test_pose_bytes_are_not_odometry_and_big_endian_decodes():

@@ -895,11 +895,19 @@ def test_ctrl_c_starts_no_further_bag_and_says_what_was_written(sim_bag, tmp_pat
         shutil.copytree(sim_bag, tmp_path / 'in' / name)
     out = tmp_path / 'out'
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen(
-        [sys.executable, '-m', 'cloe_ros.cli.main', 'infer', *(str(tmp_path / 'in' / n)
-         for n in names), '-o', str(out), '--jobs', '1', '-q'],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    # the command starts as from a terminal, with Ctrl-C's default action: a suite started in
+    # the background by a script (`make test &`) inherits SIGINT ignored (POSIX), and a Python
+    # started so ignores it (it ran all six bags and exited 0). A handler of this process's
+    # own is reset to the default in the child at its exec.
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        proc = subprocess.Popen(
+            [sys.executable, '-m', 'cloe_ros.cli.main', 'infer', *(str(tmp_path / 'in' / n)
+             for n in names), '-o', str(out), '--jobs', '1', '-q'],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     try:
         lines = []
         while not (lines and lines[-1].startswith('wrote ')):

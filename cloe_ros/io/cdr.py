@@ -104,35 +104,59 @@ class _Reader:
             raise self._fail(f'{self.end - self.pos} bytes left over')
 
 
-_HEAD = struct.Struct('<iII')  # stamp and the frame's length, little endian
+_STAMP = struct.Struct('<iI')  # a stamp, little endian
 _LENGTH = struct.Struct('<I')
+
+
+def _quick_string(raw: bytes, at: int) -> tuple[str, int] | None:
+    """The string whose length is at ``at`` (aligned to 4) of the little-endian ``raw``, and
+    the offset just after it; None where the checking reader must decide (cut short, no
+    terminating NUL, not UTF-8)."""
+    if at + 4 > len(raw):
+        return None
+    (n,) = _LENGTH.unpack_from(raw, at)
+    after = at + 4 + n
+    if not n or after > len(raw) or raw[after - 1] != 0:
+        return None
+    try:
+        return raw[at + 4 : after - 1].decode(), after
+    except UnicodeDecodeError:
+        return None
+
+
+def _quick_doubles(raw: bytes, at: int, n: int) -> np.ndarray | None:
+    """The ``n`` little-endian doubles from ``at`` (aligned up to 8) that end ``raw`` (but for
+    rclpy's padding to 4); None where they do not."""
+    start = at + (-(at - 4)) % 8
+    left = len(raw) - start - 8 * n
+    if not 0 <= left <= 3:
+        return None
+    return np.frombuffer(raw, dtype='<f8', count=n, offset=start).copy()
+
+
+def _quick_header(raw: bytes) -> tuple[int, str, int] | None:
+    """The common case of a message that starts with a ``std_msgs/Header``, little endian:
+    ``(stamp ns, frame, offset just after the frame)``, with a few struct calls; None where the
+    checking reader (:class:`_Reader`) must decode it, and say what is wrong."""
+    if len(raw) < 16 or raw[:2] != LITTLE[:2]:
+        return None
+    sec, nanosec = _STAMP.unpack_from(raw, 4)
+    frame = _quick_string(raw, 12) if nanosec < NS else None
+    return None if frame is None else (sec * NS + nanosec, *frame)
 
 
 def decode_odometry(raw: bytes | memoryview) -> OdometrySample:
     """A ``nav_msgs/msg/Odometry`` (85 doubles after two strings)."""
     if type(raw) is not bytes:
         raw = bytes(raw)
-    end = len(raw)
-    # the common case, little endian and whole, with a few struct calls and one frombuffer;
-    # anything else goes through the checking reader, which says what is wrong
-    if end >= 16 and raw[:2] == LITTLE[:2]:
-        sec, nanosec, n1 = _HEAD.unpack_from(raw, 4)
-        at = 16 + n1
-        at2 = at + (-at) % 4
-        if nanosec < NS and n1 and at2 + 4 <= end and raw[at - 1] == 0:
-            (n2,) = _LENGTH.unpack_from(raw, at2)
-            at3 = at2 + 4 + n2
-            start = at3 + (-(at3 - 4)) % 8
-            if n2 and start + 680 <= end and end - start - 680 <= 3 and raw[at3 - 1] == 0:
-                try:
-                    frame = raw[16 : at - 1].decode()
-                    child = raw[at2 + 4 : at3 - 1].decode()
-                except UnicodeDecodeError:
-                    pass
-                else:
-                    d = np.frombuffer(raw, dtype='<f8', count=85, offset=start).copy()
-                    return OdometrySample(sec * NS + nanosec, frame, child, d[0:3], d[3:7],
-                                          d[43:46], d[46:49], d[7:43], d[49:85])  # fmt: skip
+    head = _quick_header(raw)
+    if head is not None:  # (then the child frame and one frombuffer)
+        stamp, frame, at = head
+        child = _quick_string(raw, at + (-at) % 4)
+        d = None if child is None else _quick_doubles(raw, child[1], 85)
+        if d is not None:
+            return OdometrySample(stamp, frame, child[0], d[0:3], d[3:7], d[43:46], d[46:49],
+                                  d[7:43], d[49:85])  # fmt: skip
     r = _Reader(raw, 'nav_msgs/msg/Odometry')
     stamp = r.stamp_ns()
     frame, child = r.string(), r.string()
@@ -146,21 +170,12 @@ def decode_pose_stamped(raw: bytes | memoryview) -> PoseSample:
     """A ``geometry_msgs/msg/PoseStamped`` (7 doubles after one string)."""
     if type(raw) is not bytes:
         raw = bytes(raw)
-    end = len(raw)
-    # the common case, as decode_odometry's
-    if end >= 16 and raw[:2] == LITTLE[:2]:
-        sec, nanosec, n1 = _HEAD.unpack_from(raw, 4)
-        at = 16 + n1
-        start = at + (-(at - 4)) % 8
-        if (nanosec < NS and n1 and start + 56 <= end and end - start - 56 <= 3
-                and raw[at - 1] == 0):  # fmt: skip
-            try:
-                frame = raw[16 : at - 1].decode()
-            except UnicodeDecodeError:
-                pass
-            else:
-                d = np.frombuffer(raw, dtype='<f8', count=7, offset=start).copy()
-                return PoseSample(sec * NS + nanosec, frame, d[0:3], d[3:7])
+    head = _quick_header(raw)
+    if head is not None:
+        stamp, frame, at = head
+        d = _quick_doubles(raw, at, 7)
+        if d is not None:
+            return PoseSample(stamp, frame, d[0:3], d[3:7])
     r = _Reader(raw, 'geometry_msgs/msg/PoseStamped')
     stamp = r.stamp_ns()
     frame = r.string()

@@ -68,8 +68,9 @@ _STATE_SIZE = 156
 
 
 #: Whether the update runs compiled (:mod:`~cloe_ros.core.kernels_covariance`, bit for bit the
-#: numpy code of :meth:`ErrorCovariance.update`): None until the first update loads the kernel
-#: (this module imports no numba itself), then True, or False where numpy's OpenBLAS is not
+#: numpy code of :meth:`ErrorCovariance.update`): None until the first instance loads the
+#: kernel (this module imports no numba itself; the kernel is loaded with the statistics, not at
+#: their first update, which a message makes), then True, or False where numpy's OpenBLAS is not
 #: found. False runs the numpy code (the tests set it to compare the two).
 COMPILED: bool | None = None
 _D3_ROW = D3.reshape(1, -1)
@@ -144,6 +145,7 @@ class ErrorCovariance:
         if self.prior.shape != (N_STATES,):
             msg = f'prior_sigma: expected ({N_STATES},) but found {self.prior.shape}'
             raise ValueError(msg)
+        _kernel()  # (loaded now, so that no message waits on it)
         self.reset()
 
     def reset(self) -> None:

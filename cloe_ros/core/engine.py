@@ -52,7 +52,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from cloe_ros.core.algorithms import make_estimator
+from cloe_ros.core.algorithms import load_estimator, make_estimator
 from cloe_ros.core.anticipation import (
     POSITION,
     AnticipationConfig,
@@ -285,6 +285,7 @@ class VehicleEngine:
         # (the engine's counters and its timeline's: one object for the engine's life)
         self._stats = VehicleStats() if stats is None else stats
         self._factory = estimator_factory
+        load_estimator(config.estimator.algorithm)  # (not at the first message)
         self._frame = WorldFrame(config.world_frame)
         self._timeline = Timeline(config, self._stats, self._rejected, self._end_timeline,
                                   lambda: self._est is not None)  # fmt: skip
@@ -517,6 +518,7 @@ class VehicleEngine:
             self._anticipator.set_ground_altitude(config.ground_altitude)
         iv = config.algorithm == 'cloe_iv'
         if config.algorithm != old.algorithm or (iv and config.identifier != old.identifier):
+            load_estimator(config.algorithm)
             self._stats.resets += 1  # (a restart the user asked for; the frame is kept)
             self._forget_model()
             return

@@ -197,3 +197,37 @@ def test_the_kernels_python_calls_are_compiled_at_import_and_never_at_a_call():
     assert {name: at_import[name] for name in called} == dict.fromkeys(called, 1)
     assert {name: at_import[name] for name in helpers} == dict.fromkeys(helpers, 0)
     assert after_flight == at_import
+
+
+FIRST_STEPS = r'''
+import json, sys
+from cloe_ros.core import covariance
+from cloe_ros.core.engine import EngineConfig, VehicleEngine
+from cloe_ros.core.estimator import EstimatorConfig
+from test.core.test_engine import in_time_order, messages, run, simulated_flight
+
+inputs = in_time_order(*messages(simulated_flight()))[:400]
+engine = VehicleEngine(EngineConfig(estimator=EstimatorConfig(algorithm=sys.argv[1])))
+made = set(sys.modules)
+kernel = covariance._KERNEL
+estimates = run(engine, inputs)
+print(json.dumps([sorted(m for m in set(sys.modules) - made if m.startswith('cloe_ros')),
+                  kernel is not None, len(estimates)]))
+'''
+
+
+@pytest.mark.parametrize('algorithm', ['cloe_iv', 'cloe_sm'])
+def test_an_engine_loads_what_its_steps_call_when_it_is_made(algorithm):
+    """The estimator's module and the error statistics' kernel are loaded (or compiled, where no
+    cache has them) when an engine is made, which a node does before it subscribes, so the first
+    message waits on neither: a flight then imports nothing more. (Seen in the node: the first
+    odometry imported ``cloe_iv`` and ``kernels_covariance``, a stall of its own on top of the
+    start, and a compile of them where the cache was empty.)"""
+    env = {**os.environ, 'PYTHONPATH': str(REPO)}
+    done = subprocess.run([sys.executable, '-c', FIRST_STEPS, algorithm], env=env, cwd=REPO,
+                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    imported, kernel_loaded, estimates = json.loads(done.stdout.splitlines()[-1])
+    assert estimates > 100  # (the flight ran through the engine)
+    assert imported == []
+    assert kernel_loaded

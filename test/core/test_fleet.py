@@ -368,3 +368,44 @@ def test_run_engine_places_the_predictions_by_the_vehicles_namespace(flight):
         stamps = [T0_NS + round(t0 * NS) for t0 in run.pred_t[1:]]  # (after the first estimate's)
         assert len(stamps) > 20
         assert all((s - offsets[n]) % period < step for s in stamps), n
+
+
+def test_vehicles_that_start_together_join_their_pool_in_one_copy(flight, monkeypatch):
+    """A swarm seen at once: its vehicles start on the same round and join the batched arrays
+    together at the next step, one concatenation for all of them instead of one each (which
+    grew as the square of their number). Until then each reads as its own estimator, the same
+    values; and the estimates are those each gets alone."""
+    from cloe_ros.core.cloe_iv import CloeIvEstimator
+
+    seq = in_time_order(*messages(flight))[:300]
+    vehicles = [(f'/v{k}', IV, moved(seq, offset=(2.0 * k, 0.0, 0.0))) for k in range(6)]
+    joins = []
+    concatenate = CloeIvEstimator.concatenate.__func__
+
+    def counted(cls, parts):
+        joins.append(len(parts))
+        return concatenate(cls, parts)
+
+    monkeypatch.setattr(CloeIvEstimator, 'concatenate', classmethod(counted))
+    fleet = Fleet()
+    for name, config, _ in vehicles:
+        fleet.add(VehicleEngine(config, name=name))
+    out = {name: [] for name, _, _ in vehicles}
+    started = False
+    for j in range(len(seq)):
+        for name, _, inputs in vehicles:
+            feed(fleet.engines[name], *inputs[j])
+        for v, estimates in fleet.advance().items():
+            out[v] += estimates
+        if out['/v0'] and not started:  # the round they started in: none has joined yet
+            started = True
+            assert joins == []
+            for name, _, _ in vehicles:
+                est = fleet.engines[name].estimator
+                np.testing.assert_array_equal(est.zeta_hat[0], out[name][-1].zeta_hat)
+    assert joins == [6]  # (the first vehicle's estimator and the five others, at once)
+    for name, engine in fleet.engines.items():
+        out[name] += engine.finish()
+    want = alone(vehicles)
+    for name, _, _ in vehicles:
+        assert_same(out[name], want[name])

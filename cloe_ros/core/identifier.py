@@ -43,6 +43,7 @@ and batched over N vehicles (leading axis), so one set of array operations serve
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,6 +122,20 @@ def loop_row(p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
     )
 
 
+def fresh(compute):
+    """``compute``, a function of hashable settings that returns arrays, computed once per
+    settings and copied at every call (the caller may write to them). What every identifier
+    computes alike when it starts: with a swarm starting at once it was half of that start."""
+    cached = functools.lru_cache(maxsize=16)(compute)
+
+    @functools.wraps(compute)
+    def copies(*args):
+        return tuple(v.copy() if isinstance(v, np.ndarray) else v for v in cached(*args))
+
+    return copies
+
+
+@fresh
 def cascade_prior() -> tuple[np.ndarray, np.ndarray]:
     """The model used before anything is identified: for x-theta and y-phi the reduced cascade
     with the assumed attitude loop and the prior position loop (poles about -2.13 +- 1.32j and
@@ -133,6 +148,7 @@ def cascade_prior() -> tuple[np.ndarray, np.ndarray]:
     return theta, coupling
 
 
+@fresh
 def generic_prior() -> tuple[np.ndarray, np.ndarray]:
     """A generic stable closed loop with unit static gain: the identifier's prior.
 
@@ -330,6 +346,7 @@ _BLOCK_ROWS = np.arange(len(BLOCKS), dtype=np.intp)  # (block p's parameters are
 _BLOCK_STARTS = np.array([sl.start for sl in BLOCK_SLICES], dtype=np.intp)
 
 
+@fresh
 def filter_matrices(bandwidth: float, highpass: float, h: float):
     """Tustin discretisation of ``F`` and ``sF`` (common state): ``(Ad, Bd, Cf, Df, Cd, Dd)``.
 

@@ -27,6 +27,7 @@ from cloe_ros.core.identifier import (
     IdentifierConfig,
     IvIdentifier,
     cascade_prior,
+    filter_matrices,
     loop_row,
 )
 from cloe_ros.core.kinematics import state_to_odometry, yaw_quaternion
@@ -597,3 +598,21 @@ def test_the_step_allocates_no_array_the_size_of_the_statistics():
         tracemalloc.stop()
     assert len(peaks) > 50
     assert max(peaks) < ident.cross.nbytes, (max(peaks), ident.cross.nbytes)
+
+
+def test_the_priors_and_filters_computed_once_come_back_as_fresh_copies():
+    """The identifier's constant matrices are computed once per settings (every identifier of a
+    swarm starting at once needs the same), and every call returns its own copy: a caller that
+    writes to one changes no later result."""
+    theta, coupling = cascade_prior()
+    want = theta.copy()
+    theta[:] = np.nan
+    coupling[:] = np.nan
+    again, coupling_again = cascade_prior()
+    np.testing.assert_array_equal(again, want)
+    assert np.isfinite(coupling_again).all()
+    ad, *_ = filter_matrices(20.0, 0.2, 0.01)
+    ad_want = ad.copy()
+    ad[:] = 0.0
+    np.testing.assert_array_equal(filter_matrices(20.0, 0.2, 0.01)[0], ad_want)
+    assert filter_matrices(20.0, 0.2, 0.02)[0].tobytes() != ad_want.tobytes()

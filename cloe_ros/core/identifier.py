@@ -815,9 +815,13 @@ class IvIdentifier(Rows):
         ad, bd = discretise(theta[ok], c[ok], self.h)
         ad_t = np.swapaxes(ad[:, idx][:, :, idx], 1, 2)
         bd = bd[:, None, idx, block.reference]
-        order = (self._hist_next[vs[ok], None] + np.arange(w)) % w  # oldest first (V, w)
-        z = np.take_along_axis(self._hist_z[vs[ok]], order[..., None], axis=1)[:, :, idx]
-        r = np.take_along_axis(self._hist_r[vs[ok], :, block.reference], order, axis=1)
+        # the block's states and reference, oldest first, in one gather each (not the whole
+        # history taken in order, then the block's columns: 4.5 against 0.8 ms per call at 100
+        # vehicles, run four times every aux_period, every other callback of a node waiting)
+        v = vs[ok]
+        order = (self._hist_next[v, None] + np.arange(w)) % w  # (V, w)
+        z = self._hist_z[v[:, None, None], order[..., None], np.asarray(idx)]  # (V, w, n)
+        r = self._hist_r[v[:, None], order, block.reference]  # (V, w)
         steps = round(VALIDATION_HORIZON / self.h)
         starts = np.arange(0, w - steps, max(1, round(0.5 / self.h)))
         x = z[:, starts]  # (V, S, n)

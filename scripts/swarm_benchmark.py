@@ -18,8 +18,10 @@ p50 and p99, over all the states received; until 2026-12-06 it was the first veh
 the node steps and publishes first of a batch), and what the node says of its load in /diagnostics:
 how many reports it published (with ``--shards``, the sum over the shards), the largest ``busy``
 (the share of wall time in its callbacks; WARN from 0.8) and the largest ``late_s`` (how long after
-its deadline its steady timer ran; WARN from 0.5 s). Speeds depend on the machine and its load:
-compare the node's column with the floor's in the same run (EVALUATION.md, section 4). Uses
+its deadline its steady timer ran; WARN from 0.5 s) and the largest ``longest_callback_s`` (its
+longest single callback, which every input arriving meanwhile waits for). Speeds depend on the
+machine and its load: compare the node's column with the floor's in the same run (EVALUATION.md,
+section 4). Uses
 ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits the vehicles over K nodes
 (``shard_index`` / ``shard_count``, each its own process, as across hosts): the node's columns are
 then the K nodes together (CPU and reports summed, the largest ``busy`` and ``late_s`` of any).
@@ -278,6 +280,7 @@ def listen(n: int, watch: str) -> None:
 
     busy: list[float] = []
     late: list[float] = []
+    longest: list[float] = []
 
     def diagnostics(raw: bytes) -> None:
         for status in decode_diagnostics(raw)[1]:
@@ -285,6 +288,7 @@ def listen(n: int, watch: str) -> None:
             if status.name.startswith('cloe_inference') and 'busy' in values:  # (a node's own)
                 busy.append(float(values['busy']))
                 late.append(float(values['late_s']))
+                longest.append(float(values.get('longest_callback_s', 'nan')))
 
     node.create_subscription(DiagnosticArray, '/diagnostics', diagnostics, qos(depth=100),
                              raw=True)  # fmt: skip
@@ -301,7 +305,8 @@ def listen(n: int, watch: str) -> None:
     # (the largest of the reports: those before the load, and the last, are of an idle node)
     print(f'states {count[0]} latency_p50 {p50:.4f} latency_p99 {p99:.4f} '
           f'busy {max(busy, default=0.0):.3f} late {max(late, default=0.0):.3f} '
-          f'reports {len(busy)}', flush=True)  # fmt: skip
+          f'reports {len(busy)} longest {max(longest, default=0.0):.3f}',
+          flush=True)  # fmt: skip
     node.destroy_node()
     rclpy.shutdown()
 
@@ -362,7 +367,7 @@ def run(n: int, duration: float, receiver: str, tmp: Path, params: list[str] = (
         words = procs['listen'].communicate()[0].split()
         result.update(states=int(words[1]), p50=float(words[3]), p99=float(words[5]),
                       busy=float(words[7]), late=float(words[9]),
-                      reports=int(words[11]))  # fmt: skip
+                      reports=int(words[11]), longest=float(words[13]))  # fmt: skip
         if receiver != 'node':
             procs['rx'].communicate()
         for p in receivers:
@@ -492,7 +497,7 @@ def main() -> int:
     print(
         '| vehicles | do-nothing subscriber: received, CPU per message sent | cloe_inference: '
         'states of odometry, CPU per message sent, ratio to the floor, latency p50 / p99 | '
-        f"the node's /diagnostics: {reports}, busy (max), late_s (max) |"
+        f"the node's /diagnostics: {reports}, busy (max), late_s (max), longest_callback_s (max) |"
     )
     print('|---|---|---|---|')
     with tempfile.TemporaryDirectory() as tmp:
@@ -515,7 +520,8 @@ def main() -> int:
             print(f"| {n} | {f['received']} of {f['sent']}, {floor_us:.0f} us | "
                   f"{c['states']} of {odom} ({100 * c['states'] / odom:.1f} %), {node_us:.0f} us, "
                   f"{node_us / floor_us:.1f}x, {1e3 * c['p50']:.0f} / {1e3 * c['p99']:.0f} ms | "
-                  f"{c['reports']}, {c['busy']:.2f}, {c['late']:.1f} s |",
+                  f"{c['reports']}, {c['busy']:.2f}, {c['late']:.1f} s, "
+                  f"{1e3 * c['longest']:.0f} ms |",
                   flush=True)  # fmt: skip
     return 0
 

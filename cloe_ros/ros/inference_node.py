@@ -113,6 +113,9 @@ class Load:
       wait: its states are that stale, and what the subscriptions' histories overwrite
       meanwhile is missed (each vehicle's ``odom_missing``). A reading without a heartbeat
       since the last one keeps the last heartbeat's lateness.
+    * ``longest``: the wall time of the longest single callback, s. Every input that arrives
+      meanwhile waits for it, so it bounds from below how late some states come: at 100
+      vehicles, the round in which their predictions fall due together (EVALUATION.md section 4).
     """
 
     def __init__(self) -> None:
@@ -122,6 +125,7 @@ class Load:
         self._late = 0.0  # the worst lateness of the heartbeats since the last reading
         self._beats = 0  # the heartbeats since the last reading
         self._last_late = 0.0  # the last heartbeat's lateness
+        self._longest = 0.0  # the longest callback since the last reading
 
     def timed(self, fn):
         """``fn`` with its wall time added to :attr:`seconds`."""
@@ -133,7 +137,10 @@ class Load:
             try:
                 return fn(*args)
             finally:
-                self.seconds += clock() - t0
+                spent = clock() - t0
+                self.seconds += spent
+                if spent > self._longest:
+                    self._longest = spent
 
         return timed
 
@@ -147,9 +154,9 @@ class Load:
             self._beats += 1
         self._due = None if next_in is None else now + next_in
 
-    def read(self, now: float | None = None) -> tuple[float, float]:
-        """``(busy, late)`` since the last reading (since the start for the first); busy in
-        [0, 1], late in s (0 when on time)."""
+    def read(self, now: float | None = None) -> tuple[float, float, float]:
+        """``(busy, late, longest)`` since the last reading (since the start for the first);
+        busy in [0, 1], late in s (0 when on time), longest in s."""
         now = time.perf_counter() if now is None else now
         then = self._read
         self._read = (now, self.seconds)
@@ -157,9 +164,10 @@ class Load:
         late = self._late if self._beats else self._last_late
         if self._due is not None:
             late = max(late, now - self._due)  # (a deadline passed, the timer not run yet)
+        longest, self._longest = self._longest, 0.0
         self._late, self._beats = 0.0, 0
         # (to the digits /diagnostics shows, so that what it shows decides the status)
-        return round(busy, 3), round(late, 3)
+        return round(busy, 3), round(late, 3), round(longest, 3)
 
 
 class InferenceNode(Node):
@@ -205,7 +213,7 @@ class InferenceNode(Node):
         self._in_qos, self._out_qos = in_qos, out_qos
         self._started = time.monotonic()
         self.load = Load()
-        self._load = (0.0, 0.0)  # (busy, late) over the last diagnostics period
+        self._load = (0.0, 0.0, 0.0)  # (busy, late, longest) over the last diagnostics period
         self._overloaded = False  # as that load said (logged when it changes)
         # per vehicle: the inputs without a publisher, and since when (wall, monotonic)
         self._missing: dict[str, list[str]] = {}
@@ -780,7 +788,7 @@ class InferenceNode(Node):
             message += '; cloe/state also published by another node: ' + ', '.join(doubled)
         if self.idle:
             message += '; none of the listed vehicles is in this shard'
-        busy, late = self._load
+        busy, late, longest = self._load
         overload = self._overload()
         if overload:
             message += '; ' + overload
@@ -794,13 +802,14 @@ class InferenceNode(Node):
             ('published_elsewhere_too', ' '.join(doubled)),
             ('busy', f'{busy:.3f}'),
             ('late_s', f'{late:.3f}'),
+            ('longest_callback_s', f'{longest:.3f}'),
         )
         level = messages.WARN if silent or doubled or self.idle or overload else messages.OK
         return Status(level, self.get_name(), message, self.get_fully_qualified_name(), values)
 
     def _overload(self) -> str:
         """What the load of the last diagnostics period says, in words ('' if it is fine)."""
-        busy, late = self._load
+        busy, late, _ = self._load
         words = []
         if late >= LATE_WARN:
             words.append(f'behind its inputs by up to {late:.1f} s (its timer ran that late)')

@@ -420,7 +420,7 @@ def test_discovery_takes_up_vehicles_that_appear_and_reports_those_that_fall_sil
         assert inf.vehicles == ['/uav3'] and lone is not None
 
 
-def test_load_is_the_share_of_wall_time_in_callbacks_and_the_worst_timer_delay():
+def test_load_is_the_share_of_wall_time_in_callbacks_the_worst_timer_delay_and_the_longest():
     import time
 
     from cloe_ros.ros.inference_node import Load
@@ -428,9 +428,11 @@ def test_load_is_the_share_of_wall_time_in_callbacks_and_the_worst_timer_delay()
     load = Load()
     nap = load.timed(lambda s: time.sleep(s) or 'slept')
     assert nap(0.05) == 'slept' and load.seconds >= 0.05
-    busy, late = load.read()
+    assert nap(0.0) == 'slept'
+    busy, late, longest = load.read()
     assert 0.0 < busy <= 1.0 and late == 0.0
-    assert load.read() == (0.0, 0.0)  # nothing ran since the last reading
+    assert longest >= 0.05  # the longer of the two callbacks
+    assert load.read() == (0.0, 0.0, 0.0)  # nothing ran since the last reading
     with pytest.raises(ZeroDivisionError):  # what a callback raises goes through
         load.timed(lambda: 1 / 0)()
     # a 1 s timer: on time, then 0.25 s late (its next deadline stays on the grid)
@@ -490,6 +492,7 @@ def test_a_node_at_its_limit_says_so_and_recovers(context, capfd, where):
         status = inf.node_status()
         values = dict(status.values)
         assert float(values['busy']) >= BUSY_WARN and float(values['late_s']) >= LATE_WARN
+        assert float(values['longest_callback_s']) >= 1.0  # (each of those callbacks slept 1 s)
         assert 'shard_count' in status.message
         assert spin_until(ex, lambda: inf.node_status().level == 0, 60), inf.node_status()
         values = dict(inf.node_status().values)

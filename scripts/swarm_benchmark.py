@@ -21,10 +21,10 @@ how many reports it published (with ``--shards``, the sum over the shards), the 
 its deadline its steady timer ran; WARN from 0.5 s) and the largest ``longest_callback_s`` (its
 longest single callback, which every input arriving meanwhile waits for). Speeds depend on the
 machine and its load: compare the node's column with the floor's in the same run (EVALUATION.md,
-section 4). Uses
-ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits the vehicles over K nodes
-(``shard_index`` / ``shard_count``, each its own process, as across hosts): the node's columns are
-then the K nodes together (CPU and reports summed, the largest ``busy`` and ``late_s`` of any).
+section 4). Uses ROS_DOMAIN_ID 91 unless one is set. ``--shards K`` splits the vehicles over K
+nodes (``shard_index`` / ``shard_count``, each its own process, as across hosts): the node's
+columns are then the K nodes together (CPU and reports summed, the largest ``busy``, ``late_s``
+and ``longest_callback_s`` of any).
 ``--relay`` also runs, under the same load, a node that only receives and publishes each odometry
 message back as the vehicle's ``cloe/state`` (no estimation): what an inference node whose engine
 cost nothing would deliver, and its CPU per message; then that relay publishing the node's other
@@ -288,7 +288,7 @@ def listen(n: int, watch: str) -> None:
             if status.name.startswith('cloe_inference') and 'busy' in values:  # (a node's own)
                 busy.append(float(values['busy']))
                 late.append(float(values['late_s']))
-                longest.append(float(values.get('longest_callback_s', 'nan')))
+                longest.append(float(values['longest_callback_s']))
 
     node.create_subscription(DiagnosticArray, '/diagnostics', diagnostics, qos(depth=100),
                              raw=True)  # fmt: skip

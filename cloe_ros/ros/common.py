@@ -96,10 +96,9 @@ def run_node(
     cause of the states' latency tail, EVALUATION.md section 4); it now takes about a
     millisecond. (What the start-up made and later drops in a cycle stays in memory, e.g. the
     first engines of a node whose rate changes: once, not per change.) Returns the exit
-    status: 0, or 1 when the node could not be created. A command line rclpy
-    cannot start with (a ``--params-file`` that is missing or malformed, a bad ``--ros-args``
-    argument) is reported in one ``ERROR:`` line, as a bad parameter is, instead of rcl's
-    traceback.
+    status: 0, or 1 when the node could not be created. A command line rclpy cannot start with
+    (a ``--params-file`` that is missing or malformed, a bad ``--ros-args`` argument) is reported
+    in one ``ERROR:`` line, as a bad parameter is, instead of rcl's traceback.
     """
     limit_blas_threads()
     argv = list(args if args is not None else sys.argv)
@@ -119,7 +118,7 @@ def run_node(
         executor = EventsExecutor() if events else SingleThreadedExecutor()
         executor.add_node(node)
         gc.collect()
-        gc.freeze()  # (see below)
+        gc.freeze()  # (why: the docstring)
         if events:
             spin_while(executor, rclpy.ok, period=0.5)
         else:

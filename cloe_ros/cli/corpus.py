@@ -18,14 +18,13 @@ import json
 import os
 import sys
 import warnings
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.outputs import check_new_file, json_safe
-from cloe_ros.cli.workers import worker_count
+from cloe_ros.cli.workers import pool, worker_count
 from cloe_ros.core.evaluation import (
     BASELINES,
     HORIZONS,
@@ -148,8 +147,9 @@ def run_corpus(args) -> int:
     flights: list[tuple[FlightScore, str]] = []
     failed: list[tuple[Path, str]] = []
     work = _jobs(bags, settings, args.score_from, args.jobs)
-    with ProcessPoolExecutor(max_workers=worker_count(args.jobs, len(work))) as pool:
-        for done, (path, result) in enumerate(pool.map(_evaluate, work), start=1):
+    with pool(_evaluate, work, worker_count(args.jobs, len(work))) as futures:
+        for done, future in enumerate(futures, start=1):
+            path, result = future.result()
             if isinstance(result, str):
                 if (path, result) not in failed:  # (once per bag, however split)
                     failed.append((path, result))

@@ -3,7 +3,8 @@
 ``cloe infer BAG... -o DIR --jobs N``: many bags, ``N`` at once in separate processes (one per
 core by default), each into ``DIR/<its name>``. A bag that fails is reported and the others are
 still written; the exit status is then 1. After Ctrl-C no further bag is started, the outputs in
-progress are removed, and stderr lists the outputs completed and those not written.
+progress are removed, and stderr lists the outputs completed and those not written (a second
+Ctrl-C meanwhile is ignored: :func:`~cloe_ros.cli.workers.pool`).
 
 One bag of several vehicles is split the same way: its vehicles in ``N`` groups, each group
 inferred in a process of its own that sends its encoded outputs to this one, which writes them
@@ -16,11 +17,9 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import shutil
-import signal
 import sys
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from queue import Empty
@@ -28,7 +27,7 @@ from queue import Empty
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.outputs import check_folder, make_folder
 from cloe_ros.cli.progress import ProgressBar
-from cloe_ros.cli.workers import worker_count
+from cloe_ros.cli.workers import pool, uninterrupted, worker_count
 from cloe_ros.core.engine import NS, VehicleEngine
 from cloe_ros.core.fleet import Fleet, RecordingBatches
 from cloe_ros.errors import CloeError
@@ -192,15 +191,17 @@ def _split(reader, bag, settings, found, count, write, copies, progress) -> dict
                 take(wait=False)
         take(wait=True)
     except BaseException:
-        for w in workers:
-            if w.is_alive():
-                w.kill()
+        with uninterrupted():
+            for w in workers:
+                if w.is_alive():
+                    w.kill()
         raise
     finally:
-        for w in workers:
-            if w.pid is not None:
-                w.join()
-        queue.close()
+        with uninterrupted():
+            for w in workers:
+                if w.pid is not None:
+                    w.join()
+            queue.close()
     # (the groups are consecutive slices of found: in their order, its order)
     return {key: {v: x for i in range(count) for v, x in done[i][key].items()}
             for key in done[0]}  # fmt: skip
@@ -328,8 +329,9 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress)
 def _failed(err: BaseException, writer: BagWriter, output: Path) -> BaseException:
     """After ``err`` while writing ``output``: the output removed (an output cut short looks
     complete to the next tool), and the error to raise, saying so."""
-    writer.abort()
-    shutil.rmtree(output, ignore_errors=True)
+    with uninterrupted():  # (a second Ctrl-C would leave it half removed)
+        writer.abort()
+        shutil.rmtree(output, ignore_errors=True)
     if isinstance(err, WriterError) and err.path == output:  # the output's own failure
         reason = err.reason or writer.error or err
         return CliError(f'cannot write {output}: {reason}. No output written ({output} removed).')
@@ -419,6 +421,10 @@ def run(args: argparse.Namespace) -> int:
         )  # fmt: skip
     except BagError as err:
         raise CliError(str(err)) from err
+    except KeyboardInterrupt:  # (the output is removed unless it was complete)
+        done = 'complete' if args.output.exists() else 'not written'
+        print(f'output {done}: {args.output}', file=sys.stderr)
+        raise
     finally:
         bar.close()
     _print(result, args.output)
@@ -431,9 +437,8 @@ _stop = None
 
 
 def _worker_start(stop) -> None:
-    """A worker of ``cloe infer BAG...``: Ctrl-C is left to the parent, which sets ``stop``."""
+    """A worker of ``cloe infer BAG...``: the parent sets ``stop`` when it is interrupted."""
     global _stop
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _stop = stop
 
 
@@ -479,26 +484,23 @@ def _run_many(args: argparse.Namespace, settings: dict) -> int:
             for bag, name in zip(args.bag, names)]  # fmt: skip
     failed = []
     stop = multiprocessing.get_context().Event()
-    pool = ProcessPoolExecutor(max_workers=jobs, initializer=_worker_start, initargs=(stop,))
-    futures = []
+    futures: list = []
     try:
-        futures += [pool.submit(_infer_one, job) for job in work]
-        for done, (job, future) in enumerate(zip(work, futures), start=1):
-            result, why = future.result()
-            if result is None:
-                failed.append(why)
-            else:
-                _print(result, job[1])
-                sys.stdout.flush()
-            if not args.quiet:
-                print(f'[{done}/{len(work)}] {job[0].name}', file=sys.stderr, flush=True)
+        with pool(_infer_one, work, jobs, _worker_start, (stop,), stop.set) as futures:
+            for done, (job, future) in enumerate(zip(work, futures), start=1):
+                result, why = future.result()
+                if result is None:
+                    failed.append(why)
+                else:
+                    _print(result, job[1])
+                    sys.stdout.flush()
+                if not args.quiet:
+                    print(f'[{done}/{len(work)}] {job[0].name}', file=sys.stderr, flush=True)
     except KeyboardInterrupt:
-        stop.set()  # no bag starts after this; those in progress stop, their outputs removed
-        pool.shutdown(wait=True, cancel_futures=True)
-        _say_interrupted([job[1] for job in work], futures, out if created else None)
+        # (no bag started after the Ctrl-C; those in progress stopped, their outputs removed)
+        with uninterrupted():
+            _say_interrupted([job[1] for job in work], futures, out if created else None)
         raise
-    finally:
-        pool.shutdown(wait=True)
     for why in failed:
         print(f'ERROR: {why}', file=sys.stderr)
     if len(failed) == len(work):
@@ -518,6 +520,8 @@ def _say_interrupted(outputs: list[Path], futures: list, created: Path | None) -
         if not f.cancelled() and f.exception() is None and f.result()[0] is not None
     ]
     missing = [out for out in outputs if out not in complete]
+    for out in missing:  # (a worker removes its own; this one of the run's was not finished)
+        shutil.rmtree(out, ignore_errors=True)
     print(f'outputs complete: {", ".join(map(str, complete)) or "none"}', file=sys.stderr)
     if missing:
         print(f'outputs not written: {", ".join(map(str, missing))}', file=sys.stderr)

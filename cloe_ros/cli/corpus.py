@@ -146,6 +146,7 @@ def run_corpus(args) -> int:
     bags = find_bags(list(args.paths))
     flights: list[tuple[FlightScore, str]] = []
     failed: list[tuple[Path, str]] = []
+    unread: list[tuple[Path, str]] = []  # (bags that could not be read: no flight of theirs)
     work = _jobs(bags, settings, args.score_from, args.jobs)
     with pool(_evaluate, work, worker_count(args.jobs, len(work))) as futures:
         for done, future in enumerate(futures, start=1):
@@ -153,6 +154,7 @@ def run_corpus(args) -> int:
             if isinstance(result, str):
                 if (path, result) not in failed:  # (once per bag, however split)
                     failed.append((path, result))
+                    unread.append((path, result))
             else:
                 flights += result
                 failed += [(path, f'{_flight_of(path, score)}: nothing to score: {why}')
@@ -163,9 +165,9 @@ def run_corpus(args) -> int:
         print(f'ERROR: {why}', file=sys.stderr)
     if all(why for _, why in flights):
         raise CliError('no flight could be scored')
-    print(format_corpus(flights, args.score_from))
+    print(format_corpus(flights, args.score_from, unread))
     if args.json:
-        summary = corpus_summary(flights, settings, args.score_from)
+        summary = corpus_summary(flights, settings, args.score_from, unread)
         args.json.write_text(json.dumps(json_safe(summary), indent=2))
     return 1 if failed else 0
 
@@ -183,12 +185,14 @@ def _flight_dict(score: FlightScore, why: str) -> dict:
 
 
 def corpus_summary(
-    flights: list[tuple[FlightScore, str]], settings: dict, score_from: float
+    flights: list[tuple[FlightScore, str]], settings: dict, score_from: float,
+    unread: list[tuple[Path, str]] = (),
 ) -> dict:
     """The numbers of a corpus run (what ``--json`` writes). ``flights``: each flight's scores and
     why it has nothing to score ('' if it has); such a flight is written with ``"scored": false``
     and the reason, and the medians, the pooled coverage and the worst ratio are those of the
-    scored flights alone."""
+    scored flights alone. ``unread``: the bags that could not be read, and why (``"unread"``:
+    a corpus that lost a bag does not read as whole)."""
     scored = [s for s, why in flights if not why]
     worst = worst_flight(scored)
     return {
@@ -197,6 +201,7 @@ def corpus_summary(
         'horizons_s': list(HORIZONS),
         'flights': [_flight_dict(s, why) for s, why in flights],
         'flights_scored': len(scored),
+        'unread': [{'bag': str(path), 'error': why} for path, why in unread],
         'median_rmse_m': {n: median_rmse(scored, n).tolist() for n in ('model', *BASELINES)},
         'pooled_coverage': pooled_coverage(scored).tolist(),
         'worst_ratio': worst.worst_ratio if worst else None,
@@ -227,12 +232,15 @@ def pooled_coverage(scores: list[FlightScore]) -> np.ndarray:
     return np.where(count > 0, inside / np.maximum(count, 1), np.nan)
 
 
-def format_corpus(flights: list[tuple[FlightScore, str]], score_from: float) -> str:
+def format_corpus(
+    flights: list[tuple[FlightScore, str]], score_from: float, unread: list[tuple[Path, str]] = ()
+) -> str:
     """The per-flight table and the medians, worst ratio and pooled coverage over the flights.
     ``flights``: each flight's scores and why it has nothing to score ('' if it has); such a
-    flight's row says so and why, and it is left out of what follows the table."""
+    flight's row says so and why, and it is left out of what follows the table. ``unread``: the
+    bags that could not be read, a row each (named by the bag), and why."""
     h = '/'.join(f'{x:g}' for x in HORIZONS)
-    width = max(len(s.name) for s, _ in flights)
+    width = max(len(name) for name in [s.name for s, _ in flights] + [p.name for p, _ in unread])
     lines = [
         f'prediction RMSE [m] at {h} s, predictions issued from {score_from:g} s after the first '
         'odometry on, against the odometry that followed',
@@ -248,6 +256,7 @@ def format_corpus(flights: list[tuple[FlightScore, str]], score_from: float) -> 
             f'{_row(s.rmse["hold_position"])} {s.worst_ratio:5.2f}  '
             + ' '.join(f'{c:5.2f}' for c in s.coverage) + f'   {100 * s.untracked:5.1f} %'
         )
+    lines += [f'{path.name:<{width}}  not read (see its ERROR line)' for path, _ in unread]
     scored = [s for s, why in flights if not why]
     left_out = (f' ({len(flights) - len(scored)} flight(s) with nothing to score left out)'
                 if len(scored) < len(flights) else '')  # fmt: skip

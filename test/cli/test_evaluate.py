@@ -258,11 +258,20 @@ def test_evaluate_corpus_scores_every_flight_beside_the_baselines(tmp_path, caps
     empty = corpus / 'empty'
     with BagWriter(empty) as writer:
         writer.add_topic('/chatter', 'std_msgs/msg/String')
-    status = main(['evaluate', 'corpus', str(corpus), '-q', '--jobs', '1'])
+    out.unlink()
+    status = main(['evaluate', 'corpus', str(corpus), '-q', '--jobs', '1', '--json', str(out)])
     printed = capsys.readouterr()
     assert status == 1
-    assert 'ERROR:' in printed.err and 'empty' in printed.err
+    (error,) = printed.err.splitlines()
+    assert error.startswith(f'ERROR: {empty}')
     assert 'median over 3 flights' in printed.out
+    # ... and it has a row, and its entry in the JSON (before: neither, so that the JSON of a
+    # corpus that lost a bag read as whole)
+    rows = [line.split(None, 1) for line in printed.out.splitlines()]
+    assert ['empty', 'not read (see its ERROR line)'] in rows
+    data = json.loads(out.read_text())
+    assert data['unread'] == [{'bag': str(empty), 'error': error.removeprefix('ERROR: ')}]
+    assert len(data['flights']) == data['flights_scored'] == 3
 
 
 def test_evaluate_corpus_refuses_paths_without_bags(tmp_path, capsys):

@@ -225,8 +225,9 @@ SETTINGS: dict[str, Setting] = {s.name: s for s in (
             'vehicles', range=(1, 10000), **_RO),
     Setting('discovery_period', 1.0, 'period of the ROS graph poll (discovery, and the check that '
             'every vehicle has publishers), s of wall time', range=(0.05, 60.0), **_RO),
-    Setting('publisher_timeout', 5.0, 'a vehicle without a publisher of odom or reference this '
-            'long after the start (or after its publishers left) gets a warning, s of wall time',
+    Setting('publisher_timeout', 5.0, 'a vehicle without a publisher of odom or reference (of its '
+            'type) this long after the start (or after its publishers left) gets a warning, s of '
+            'wall time',
             range=(0.1, 3600.0), **_RO),
     # -- the estimator --------------------------------------------------------------------------
     Setting('algorithm', 'cloe_iv', 'estimator: cloe, cloe_sm or cloe_iv (cloe and cloe_sm as the '

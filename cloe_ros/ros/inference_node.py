@@ -79,6 +79,8 @@ OUTPUT_TYPES = {
 }
 #: The inputs of a vehicle, each counted in /diagnostics when DDS loses some.
 INPUTS = ('odom', 'reference', 'reference_plan')
+#: The inputs a vehicle needs, and the type the node subscribes to each with.
+INPUT_TYPES = {'odom': messages.ODOMETRY, 'reference': messages.POSE_STAMPED}
 #: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
 STALE_AFTER = 2.0
 #: The node's status turns WARN when, over a diagnostics period, its callbacks took this share
@@ -434,10 +436,11 @@ class InferenceNode(Node):
         self.load.heartbeat(None if next_in is None else next_in / NS)
         now = time.monotonic()
         topics = self.get_topic_names_and_types()
+        types = dict(topics)
         if self.discover:
             known = {self.vehicle_ns[v] for v in self.vehicles}
             for ns in graph_namespaces(topics):
-                if ns in known or not self._ours(ns) or self._missing_inputs(ns):
+                if ns in known or not self._ours(ns) or self._missing_inputs(ns, types):
                     continue
                 if ns == '/' and self.get_namespace() != '/':
                     continue  # (un-namespaced topics outside the node's namespace: not a vehicle)
@@ -448,7 +451,7 @@ class InferenceNode(Node):
         for v in self.vehicles:
             self._check_doubled(v)
             ns = self.vehicle_ns[v]
-            missing = self._missing[v] = self._missing_inputs(ns)
+            missing = self._missing[v] = self._missing_inputs(ns, types)
             if 'odom' in missing:
                 self.engines[v].odometry_unpublished()
             if not missing:
@@ -484,18 +487,55 @@ class InferenceNode(Node):
             self._doubled.discard(v)
             self.get_logger().info(f'{self.vehicle_ns[v]}: this node alone publishes {topic}')
 
-    def _missing_inputs(self, namespace: str) -> list[str]:
-        """The inputs of the vehicle of ``namespace`` that nothing publishes."""
+    def _missing_inputs(self, namespace: str, types: dict[str, list[str]]) -> list[str]:
+        """The inputs of the vehicle of ``namespace`` that nothing publishes as the type the node
+        subscribes with (a publisher of another type never matches: :meth:`_other_types`).
+        ``types``: each topic's types in the graph (``get_topic_names_and_types``), which count
+        the subscriptions too; a topic's publishers are asked for theirs only where it has
+        another type than the one the node takes."""
         base = namespace.rstrip('/')
-        return [n for n in ('odom', 'reference') if not self.count_publishers(f'{base}/{n}')]
+        missing = []
+        for name, msgtype in INPUT_TYPES.items():
+            topic = f'{base}/{name}'
+            if types.get(topic) == [msgtype]:
+                published = self.count_publishers(topic) > 0
+            else:
+                published = msgtype in self._other_types(topic, '')
+            if not published:
+                missing.append(name)
+        return missing
+
+    def _other_types(self, topic: str, msgtype: str) -> list[str]:
+        """The types, other than ``msgtype``, that ``topic`` is published as."""
+        return sorted({info.topic_type for info in self.get_publishers_info_by_topic(topic)}
+                      - {msgtype})  # fmt: skip
+
+    def _unpublished(self, v: str, missing: list[str], topics: bool = True) -> str:
+        """What vehicle ``v``'s ``missing`` inputs lack: nothing publishes them, or they are
+        published as another type than the node takes (a sender of the wrong message). Named by
+        their topics, or by the inputs' names alone (in the vehicle's own status)."""
+        base = self.vehicle_ns[v].rstrip('/')
+        absent, parts = [], []
+        for name in missing:
+            topic = f'{base}/{name}'
+            other = self._other_types(topic, INPUT_TYPES[name])
+            shown = topic if topics else name
+            if other:
+                parts.append(f'{shown} is published as {" and ".join(other)}, not as '
+                             f'{INPUT_TYPES[name]}')  # fmt: skip
+            else:
+                absent.append(shown)
+        if absent:
+            parts.insert(0, f'nothing publishes {" and ".join(absent)}')
+        return '; '.join(parts)
 
     def _missing_warning(self, v: str, missing: list[str], for_s: float, flying: list[str]) -> str:
         """The warning of vehicle ``v``, whose ``missing`` inputs nothing has published for
         ``for_s`` s, with the hint of the namespaces ``flying`` (:meth:`_flying_elsewhere`)."""
         ns = self.vehicle_ns[v]
-        base = ns.rstrip('/')
-        what = ' and '.join(f'{base}/{n}' for n in missing)
-        text = f'{ns}: nothing publishes {what} (for {for_s:.0f} s)'
+        text = f'{ns}: {self._unpublished(v, missing)} (for {for_s:.0f} s)'
+        if not text.startswith(f'{ns}: nothing publishes'):
+            return text  # (published, as another type: neither hint applies)
         if v in self._discovered:
             return text + ': the vehicle fell silent'
         if flying:
@@ -518,7 +558,9 @@ class InferenceNode(Node):
         and reference (the vehicles the user likely meant), else []."""
         if self.listed or self.discover:
             return []
-        return [n for n in graph_namespaces(topics) if n != ns and not self._missing_inputs(n)]
+        types = dict(topics)
+        return [n for n in graph_namespaces(topics)
+                if n != ns and not self._missing_inputs(n, types)]  # fmt: skip
 
     # -------------------------------------------------------------------------- callbacks
 
@@ -711,7 +753,7 @@ class InferenceNode(Node):
             missing = []  # (not for publisher_timeout yet: as the warning and the node's status)
         if missing:
             level = max(level, messages.WARN)
-            message += (f'; nothing publishes {" and ".join(missing)} for '
+            message += (f'; {self._unpublished(vehicle, missing, topics=False)} for '
                         f'{time.monotonic() - since:.0f} s')  # fmt: skip
         heard = self._odom_heard.get(vehicle)
         silent = None if heard is None else time.monotonic() - heard

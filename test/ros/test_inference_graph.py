@@ -354,6 +354,46 @@ def test_a_listed_vehicle_without_publishers_is_warned_of(context, capfd):
         assert 'discover:=true' in err and '/uav1: nothing' not in err
 
 
+def test_inputs_published_as_another_type_are_warned_of(context, capfd):
+    """/uav1's odom and reference are both published as PoseStamped: a publisher of the wrong
+    type never matches the node's subscription, so the odometry is as missing as if nothing
+    published it, and the warning and /diagnostics say what it is published as (before: the
+    node counted the publishers, whatever their type, and waited with status OK, saying
+    nothing)."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+
+    # (in a participant of its own: one participant holds a topic with one type only)
+    other = rclpy.Context()
+    rclpy.init(context=other, domain_id=context.get_domain_id())
+    try:
+        helper = rclpy.create_node('wrong_types', context=other)
+        for name in ('odom', 'reference'):
+            helper.create_publisher(PoseStamped, f'/uav1/{name}', 10)
+        _warned_of_the_wrong_type(context, capfd)
+    finally:
+        rclpy.try_shutdown(context=other)
+
+
+def _warned_of_the_wrong_type(context, capfd) -> None:
+    inf = _inference(context, vehicles=['/uav1'], discovery_period=0.1, publisher_timeout=0.5)
+    with _spinning(context, inf) as ex:
+
+        def status():  # (once the other participant's publishers are discovered)
+            return inf.vehicle_status('/uav1', 0.0)
+
+        assert spin_until(ex, lambda: dict(status().values)['publishers_missing'] == 'odom', 30)
+        assert status().level == inf.node_status().level == 1
+        assert dict(inf.node_status().values)['without_publishers'] == '/uav1'
+        assert ('odom is published as geometry_msgs/msg/PoseStamped, not as '
+                'nav_msgs/msg/Odometry for') in status().message  # fmt: skip
+        err = Stderr(capfd)
+        wrong = ('/uav1: /uav1/odom is published as geometry_msgs/msg/PoseStamped, not as '
+                 'nav_msgs/msg/Odometry (for ')  # fmt: skip
+        assert spin_until(ex, lambda: err.has(wrong), 30), err.text
+        assert 'nothing publishes' not in err.text and 'discover:=true' not in err.text
+
+
 def test_no_list_while_namespaced_vehicles_fly_gives_a_hint(context, capfd):
     inf = _inference(context, discovery_period=0.1, publisher_timeout=0.5)
     helper = rclpy_node(context)

@@ -42,6 +42,8 @@ class BagInfo:
     damage: tuple[str, ...] = ()
     #: where metadata.yaml disagrees with the files (the files' counts are the ones shown)
     warnings: tuple[str, ...] = ()
+    #: the data no CRC vouches for (:func:`mcap_damage`): damage there cannot be seen
+    unchecked: tuple[str, ...] = ()
 
     @property
     def duration_ns(self) -> int:
@@ -69,17 +71,20 @@ class BagInfo:
         out += [f'  {t.topic:<{width}}  {t.msgtype:<{tw}}  {t.count}' for t in self.topics]
         for i, warning in enumerate(self.warnings):
             out.append(f'{"warning:" if i == 0 else "":<11}{warning}')
+        for i, what in enumerate(self.unchecked):
+            out.append(f'{"unchecked:" if i == 0 else "":<11}{what}')
         for i, problem in enumerate(self.damage):
             out.append(f'{"damaged:" if i == 0 else "":<11}{problem}')
         return out
 
 
-def mcap_damage(files: list[Path], counts: dict[str, int]) -> list[str]:
+def mcap_damage(files: list[Path], counts: dict[str, int]) -> tuple[list[str], list[str]]:
     """What is wrong with the data of complete ``.mcap`` files, read record by record as
     ``cloe bag recover`` reads them (``[]`` for good files): damaged records, a data section that
     does not match its CRC, a file that ends early, and topics with fewer messages than
-    ``counts`` (what the bag lists) says."""
-    problems = []
+    ``counts`` (what the bag lists) says; and the files whose chunks carry no CRC (damage to
+    their messages' contents cannot be seen: the format allows a writer to leave CRCs out)."""
+    problems, unchecked = [], []
     found: dict[str, int] = {}
     for path in files:
         scan = McapScan(path)
@@ -92,12 +97,18 @@ def mcap_damage(files: list[Path], counts: dict[str, int]) -> list[str]:
             problems.append(f'{path.name}: {DATA_CRC_MISMATCH}')
         if not scan.complete:
             problems.append(f'{path.name}: {scan.reason}')
+        if scan.chunks_without_crc:
+            unchecked.append(
+                f'{path.name}: {scan.chunks_without_crc} of its {scan.chunks} chunks carry no CRC '
+                '(written without): their messages\' contents cannot be checked'
+                + ('' if scan.data_crc else ', nor can the data section')
+            )
     for topic, n in sorted(counts.items()):
         if found.get(topic, 0) < n:
             problems.append(
                 f'{topic}: {found.get(topic, 0)} of the {n} messages listed are readable'
             )
-    return problems
+    return problems, unchecked
 
 
 def bag_info(bag: Path | str) -> BagInfo:
@@ -115,8 +126,9 @@ def bag_info(bag: Path | str) -> BagInfo:
         storage = f'{reader.storage}, a single file without metadata.yaml' if single else (
             reader.storage)  # fmt: skip
         damage: list[str] = []
+        unchecked: list[str] = []
         if reader.storage == 'mcap' and reader.compression_mode != 'file':
-            damage = mcap_damage(reader.files, reader.listed_counts)
+            damage, unchecked = mcap_damage(reader.files, reader.listed_counts)
         return BagInfo(
             bag,
             tuple(f.name for f in reader.files),
@@ -127,4 +139,5 @@ def bag_info(bag: Path | str) -> BagInfo:
             reader.end_ns,
             tuple(damage),
             tuple(reader.metadata_mismatch),
+            tuple(unchecked),
         )

@@ -276,7 +276,11 @@ class McapScan:
       or garbage up to the end of the file); its complete messages are kept as for a cut file,
     * ``expected_messages`` is the message count of the file's statistics (None without summary),
     * ``data_crc_mismatch`` says whether the file's ``DataEnd`` record holds a data section CRC
-      that the bytes before it do not match.
+      that the bytes before it do not match,
+    * ``chunks`` and ``chunks_without_crc`` count the whole chunks read and those that carry no
+      CRC (0: none computed, which the format allows), whose bytes nothing can vouch for; a
+      message index checks their records' places and times, not their contents; and
+      ``data_crc`` says whether a ``DataEnd`` record held a data section CRC.
 
     ``source`` is a path or a seekable binary file object. Raises :class:`RecoverError` only when
     the file is not MCAP at all (or is empty).
@@ -296,6 +300,8 @@ class McapScan:
         self.partial_chunk_messages = 0
         self.damaged_tail = False
         self.data_crc_mismatch = False
+        self.chunks = self.chunks_without_crc = 0
+        self.data_crc = False
         self.skipped: list[SkippedRecord] = []
         self.expected_messages: int | None = None
         self.schemas: dict[int, McapSchema] = {}
@@ -576,6 +582,7 @@ class McapScan:
             self.profile = record.profile
             return []
         if isinstance(record, DataEnd):
+            self.data_crc = bool(record.data_section_crc)
             if record.data_section_crc and not self.skipped:
                 crc = mr.crc_of_range(fh, 0, pos)
                 self.data_crc_mismatch = crc != record.data_section_crc
@@ -619,6 +626,8 @@ class McapScan:
         """The records of a chunk that is whole on disk; :class:`_Corrupt` if it is damaged
         (:class:`_CrcMismatch` if it does not match its CRC)."""
         head = _chunk_head(body, complete=True)
+        self.chunks += 1
+        self.chunks_without_crc += not head.uncompressed_crc
         try:
             data = mr.decompress_chunk(head)
         except mr.RecordError as err:

@@ -257,6 +257,31 @@ def test_info_counts_what_the_file_holds(sim_bag, tmp_path, capsys):
     assert 'damaged' not in out
 
 
+def test_info_says_what_no_crc_vouches_for(sim_bag, tmp_path, capsys):
+    """A bag written without CRCs (as rosbags writes MCAP, and so the NanoBench corpus): its
+    messages' contents cannot be checked, and info says so in an ``unchecked:`` line, status 0
+    (before: the same output as for a bag whose every byte was checked, so that damage to its
+    messages went unseen and unsaid). The package's own bags carry CRCs: no such line."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    String = store.types['std_msgs/msg/String']
+    bag = tmp_path / 'plain'
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        chatter = writer.add_connection('/chatter', String.__msgtype__, typestore=store)
+        for k in range(3):
+            data = store.serialize_cdr(String(data=f'message {k}'), String.__msgtype__)
+            writer.write(chatter, 1_000_000_000 + k, data)
+    status, out, err = run(capsys, 'info', bag)
+    assert (status, err) == (0, '')
+    (line,) = [line for line in out.splitlines() if line.startswith('unchecked:')]
+    assert line == ('unchecked: plain.mcap: 1 of its 1 chunks carry no CRC (written without): '
+                    "their messages' contents cannot be checked, nor can the data section")
+    status, out, err = run(capsys, 'info', sim_bag)
+    assert (status, err) == (0, '') and 'unchecked' not in out
+
+
 def test_recover_onto_a_full_disk(sim_bag, tmp_path, capsys, monkeypatch):
     """One ERROR line naming the output (before: `ERROR: [Errno 28] No space left on device`),
     nothing left behind."""

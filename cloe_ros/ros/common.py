@@ -115,6 +115,8 @@ def run_node(
     status = 0
     try:
         node = node_factory()
+        for warning in params_files_for_others(argv, node.get_name()):
+            node.get_logger().warning(warning)
         executor = EventsExecutor() if events else SingleThreadedExecutor()
         executor.add_node(node)
         gc.collect()
@@ -194,6 +196,39 @@ def check_params_files(argv: Sequence[str]) -> None:
                 f'(as in config/*.yaml), found {type(content).__name__} {_short(content)}'
             )
         _check_node_mapping(name, content, '')
+
+
+def params_files_for_others(argv: Sequence[str], node_name: str) -> list[str]:
+    """A warning for each ``--params-file`` of ``argv`` (checked: :func:`check_params_files`)
+    none of whose sections applies to the node ``node_name``: sections for other node names
+    only, none for ``/**`` or a wildcard. ROS ignores such a file without a word, and the node
+    runs on its defaults (e.g. ``config/inference.yaml``, whose section is ``cloe_inference``,
+    given to a node renamed ``-r __node:=cloe_shard1``). A section counts as the node's when the
+    last part of its name is the node's (whatever its namespace, so as never to warn of a file
+    that applies)."""
+    warnings = []
+    for name in params_files(argv):
+        content = yaml.safe_load(Path(name).read_text(encoding='utf-8'))
+        sections = _sections(content) if isinstance(content, dict) else []
+        last = [section.rstrip('/').rsplit('/', 1)[-1] for section in sections]
+        if sections and not any('*' in s or s == node_name for s in last):
+            warnings.append(
+                f'parameter file {name}: it has parameters for {", ".join(sections)}, not for '
+                f'this node ({node_name}) nor /**: none of them apply (name its section '
+                f'{node_name}, or start the node under the name the file gives)'
+            )
+    return warnings
+
+
+def _sections(mapping: dict, where: str = '') -> list[str]:
+    """The node names of a parameter file's ``mapping``: the paths to its ``ros__parameters``."""
+    out = []
+    for key, value in mapping.items():
+        if key == 'ros__parameters':
+            out.append(where or '/')
+        elif isinstance(value, dict):
+            out += _sections(value, f'{where}/{str(key).strip("/")}')
+    return out
 
 
 def _check_node_mapping(name: str, mapping: dict, where: str) -> None:

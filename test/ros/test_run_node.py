@@ -76,3 +76,35 @@ def test_what_the_start_up_made_is_frozen_while_the_node_spins(monkeypatch):
     assert status == 0 and node.destroyed
     assert frozen[0] > 10_000  # (the modules, the node: all of it)
     assert gc.get_freeze_count() == 0
+
+
+def test_a_parameter_file_for_other_node_names_only_is_warned_of(tmp_path, monkeypatch, capfd):
+    """config/inference.yaml (section cloe_inference) given to a node named otherwise: ROS
+    ignores the file without a word and the node runs on its defaults (before: so it did here,
+    the trap docs/multihost.md describes for renamed shards); now the node warns, naming the
+    file and its sections. A file with a section that can apply (the node's name in any
+    namespace, /**, a wildcard) is not warned of."""
+    config = common.Path(__file__).resolve().parents[2] / 'config' / 'inference.yaml'
+    (warning,) = common.params_files_for_others(['x', '--ros-args', '--params-file',
+                                                 str(config)], 'cloe_shard1')  # fmt: skip
+    assert warning == (
+        f'parameter file {config}: it has parameters for /cloe_inference, not for this node '
+        '(cloe_shard1) nor /**: none of them apply (name its section cloe_shard1, or start the '
+        'node under the name the file gives)'
+    )
+    assert common.params_files_for_others(['--ros-args', '--params-file', str(config)],
+                                          'cloe_inference') == []  # fmt: skip
+    for text in ('/**:\n  ros__parameters: {rate: 50}\n',
+                 'fleet:\n  cloe_shard1:\n    ros__parameters: {rate: 50}\n',
+                 '/fleet/cloe_shard*:\n  ros__parameters: {rate: 50}\n',
+                 ''):  # fmt: skip
+        path = tmp_path / 'params.yaml'
+        path.write_text(text)
+        argv = ['--ros-args', '--params-file', str(path)]
+        assert common.params_files_for_others(argv, 'cloe_shard1') == [], text
+    # the node says it when it starts
+    monkeypatch.setattr(SingleThreadedExecutor, 'spin', lambda self: rclpy.shutdown())
+    status = common.run_node(Closed, args=['x', '--ros-args', '--params-file', str(config)])
+    assert status == 0
+    assert 'parameter file' in capfd.readouterr().err
+    assert not rclpy.ok()

@@ -27,10 +27,11 @@ from queue import Empty
 from cloe_ros.cli.errors import CliError
 from cloe_ros.cli.outputs import check_folder, make_folder
 from cloe_ros.cli.progress import ProgressBar
-from cloe_ros.cli.workers import pool, uninterrupted, worker_count
+from cloe_ros.cli.workers import pool, worker_count
 from cloe_ros.core.engine import NS, VehicleEngine
 from cloe_ros.core.fleet import Fleet, RecordingBatches
 from cloe_ros.errors import CloeError
+from cloe_ros.interrupts import uninterrupted
 from cloe_ros.io import messages
 from cloe_ros.io.config import build_configs, command_settings
 from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE, feed, input_routes

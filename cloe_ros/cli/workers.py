@@ -1,18 +1,18 @@
 """The worker processes of a command with ``--jobs`` (``cloe infer BAG...``, ``cloe evaluate
 corpus``): how many (:func:`worker_count`), and a pool of them that Ctrl-C stops cleanly
-(:func:`pool`, :func:`uninterrupted`)."""
+(:func:`pool`)."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
 import signal
-import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import contextmanager
 
 from cloe_ros.cli.errors import CliError
+from cloe_ros.interrupts import uninterrupted
 
 
 def worker_count(jobs: int, tasks: int) -> int:
@@ -20,23 +20,6 @@ def worker_count(jobs: int, tasks: int) -> int:
     if jobs < 0:
         raise CliError(f'--jobs must be >= 0 (0: one per core), got {jobs}')
     return max(1, min(jobs or os.cpu_count() or 1, tasks))
-
-
-@contextmanager
-def uninterrupted() -> Iterator[None]:
-    """Ctrl-C ignored while the block runs: for the cleanup after a first Ctrl-C, which a second
-    must not cut short (an output half removed; on Python 3.11 a KeyboardInterrupt in the join
-    of a process pool's thread leaves the pool shut down half-way, its workers waiting for work
-    and the command waiting for them, for ever). A Ctrl-C meanwhile is dropped: the command is
-    stopping already. Signals are the main thread's; in another thread nothing changes."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def _worker_start(initializer: Callable | None, initargs: tuple) -> None:
@@ -66,7 +49,7 @@ def pool(
     On Ctrl-C in the block: ``stop()`` (default: the workers are terminated; a job that must
     clean up after itself passes its own, e.g. setting an event its workers watch), the jobs not
     started are cancelled, the workers are waited for, with Ctrl-C ignored meanwhile
-    (:func:`uninterrupted`), and the KeyboardInterrupt goes on."""
+    (:func:`~cloe_ros.interrupts.uninterrupted`), and the KeyboardInterrupt goes on."""
     before = set(multiprocessing.active_children())
     held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     executor = None

@@ -10,6 +10,7 @@ import functools
 import gc
 import os
 import re
+import signal
 import sys
 import tempfile
 from collections.abc import Callable, Iterable, Sequence
@@ -36,6 +37,7 @@ from rclpy.qos import (
 )
 from rclpy.task import Future
 
+from cloe_ros.interrupts import uninterrupted
 from cloe_ros.ros.errors import ParameterError, StartupError
 from cloe_ros.threads import limit_blas_threads
 
@@ -87,8 +89,10 @@ def run_node(
     (:func:`spin_while`).
 
     SIGINT and SIGTERM reach rclpy as ``ExternalShutdownException``; ``destroy_node`` runs in
-    ``finally`` so nodes that hold files (the recorder) close them completely. A node can end the
-    process by calling ``rclpy.shutdown(context=...)`` (e.g. a player at the end of its bag).
+    ``finally`` so nodes that hold files (the recorder) close them completely, with a second
+    SIGINT or SIGTERM ignored meanwhile (it raised KeyboardInterrupt inside ``destroy_node``).
+    A node can end the process by calling ``rclpy.shutdown(context=...)`` (e.g. a player at the
+    end of its bag).
     Before spinning, what the start-up made (the imported modules, the compiled kernels, the
     node and its engines) is collected once and frozen (``gc.freeze``): the collector's full
     passes then scan only what was made since. In the inference node at 100 vehicles a full
@@ -137,10 +141,12 @@ def run_node(
         print(f'ERROR: {err}', file=sys.stderr)
         status = 1
     finally:
-        gc.unfreeze()
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        # (a second Ctrl-C or SIGTERM must not cut the closing short: the recorder's bag)
+        with uninterrupted(signal.SIGINT, signal.SIGTERM):
+            gc.unfreeze()
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
     return status
 
 

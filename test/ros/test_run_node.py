@@ -10,6 +10,10 @@ the executor's ``spin`` is replaced here by one that does what the race does.
 from __future__ import annotations
 
 import gc
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import rclpy
@@ -17,6 +21,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from cloe_ros.ros import common
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class Closed(Node):
@@ -84,7 +90,7 @@ def test_a_parameter_file_for_other_node_names_only_is_warned_of(tmp_path, monke
     the trap docs/multihost.md describes for renamed shards); now the node warns, naming the
     file and its sections. A file with a section that can apply (the node's name in any
     namespace, /**, a wildcard) is not warned of."""
-    config = common.Path(__file__).resolve().parents[2] / 'config' / 'inference.yaml'
+    config = ROOT / 'config' / 'inference.yaml'
     (warning,) = common.params_files_for_others(['x', '--ros-args', '--params-file',
                                                  str(config)], 'cloe_shard1')  # fmt: skip
     assert warning == (
@@ -108,3 +114,41 @@ def test_a_parameter_file_for_other_node_names_only_is_warned_of(tmp_path, monke
     assert status == 0
     assert 'parameter file' in capfd.readouterr().err
     assert not rclpy.ok()
+
+
+#: A node that gets a Ctrl-C while it spins, then another Ctrl-C and a SIGTERM while it is
+#: destroyed (as an impatient user, or `timeout -s INT`, which signals twice, or a process
+#: manager that follows up with SIGTERM): it prints "closed" if its closing ran to the end.
+CLOSING = r'''
+import os, signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # (as from a terminal)
+from rclpy.node import Node
+from cloe_ros.ros import common
+
+class Closing(Node):
+    def __init__(self):
+        super().__init__('closing_probe')
+        self.timer = self.create_timer(0.01, self.interrupt)
+
+    def interrupt(self):
+        self.timer.cancel()
+        os.kill(os.getpid(), signal.SIGINT)
+
+    def destroy_node(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGTERM)
+        print('closed', flush=True)
+        return super().destroy_node()
+
+sys.exit(common.run_node(Closing, args=['closing']))
+'''
+
+
+def test_a_second_signal_does_not_cut_the_closing_of_a_node_short():
+    """Before: the second Ctrl-C raised KeyboardInterrupt inside ``destroy_node`` (seen with the
+    inference node under `timeout -s INT`: a traceback from rclpy's destroy_publisher), where
+    the recorder closes its bag."""
+    done = subprocess.run([sys.executable, '-c', CLOSING], capture_output=True, text=True,
+                          timeout=300, env=dict(os.environ, PYTHONPATH=str(ROOT)))  # fmt: skip
+    assert (done.returncode, done.stdout) == (0, 'closed\n'), done.stderr
+    assert 'Traceback' not in done.stderr, done.stderr

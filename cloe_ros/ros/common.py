@@ -358,7 +358,8 @@ def declare(node: Node, name: str, default, descriptor: ParameterDescriptor):
         rclpy.exceptions.InvalidParameterTypeException,
         rclpy.exceptions.InvalidParameterValueException,
     ) as err:
-        raise ParameterError(str(err), name) from err
+        # (rclpy's text ends with the parameter's name, which the error names first)
+        raise ParameterError(str(err).removesuffix(f': {name}'), name) from err
 
 
 def _as_double(param: Parameter, wanted: int) -> Parameter:

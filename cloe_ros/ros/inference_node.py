@@ -459,7 +459,8 @@ class InferenceNode(Node):
                 self._hinted.discard(v)
                 if v in self._warned_missing:
                     self._warned_missing.discard(v)
-                    self.get_logger().info(f'{ns}: odom and reference are published again')
+                    again = ' again' if v in self._odom_heard else ''
+                    self.get_logger().info(f'{ns}: odom and reference are published{again}')
                 continue
             since = self._missing_since.setdefault(v, now)
             if now - since < self.publisher_timeout or v in self._hinted:
@@ -545,7 +546,7 @@ class InferenceNode(Node):
                 f'{text}; odom and reference are published under {shown}: set '
                 f'vehicles:=[{", ".join(flying)}] or discover:=true'
             )
-        given = (f'vehicles: [{", ".join(self.listed)}]' if self.listed
+        given = (f'vehicles: [{", ".join(v or "/" for v in self.listed)}]' if self.listed
                  else 'no vehicles:=[...] given')  # fmt: skip
         return text + (
             f'; is {ns} the namespace of a vehicle that flies? ({given}'

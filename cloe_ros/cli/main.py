@@ -11,8 +11,8 @@ rclpy; a test checks it).
 Errors a user can act on derive from :class:`cloe_ros.errors.CloeError` and are printed as
 ``ERROR: ...`` with exit status 1, never as a traceback. The exit statuses (:data:`EXIT_STATUS`,
 shown by ``cloe --help``) are those a shell expects: 2 for a command line that does not parse
-(argparse), 130 after Ctrl-C, and a reader that goes away (``cloe bag info BAG | head -1``) ends
-the command quietly with 141, the status of a tool killed by SIGPIPE (128 + 13), which is what
+(argparse), 130 after Ctrl-C, and a reader that goes away while output is still to come
+(``head``) ends the command quietly with 141, the status of a tool killed by SIGPIPE (128 + 13), which is what
 ``cat`` or ``grep`` give in the same pipeline.
 """
 
@@ -45,8 +45,8 @@ exit status:
        damaged bag, an output that exists, a full disk, ...) and nothing is left half-written
   {EXIT_USAGE}    the command line does not parse (unknown option, missing argument)
   {EXIT_INTERRUPTED}  interrupted by Ctrl-C (SIGINT)
-  {EXIT_PIPE_CLOSED}  standard output was closed by its reader (`cloe bag info BAG | head -1`): the
-       command stops quietly, as a tool ended by SIGPIPE
+  {EXIT_PIPE_CLOSED}  standard output was closed by its reader (e.g. `| head`) while output was
+       still to come: the command stops quietly, as a tool ended by SIGPIPE
 """
 
 

@@ -537,7 +537,7 @@ class InferenceNode(Node):
         text = f'{ns}: {self._unpublished(v, missing)} (for {for_s:.0f} s)'
         if not text.startswith(f'{ns}: nothing publishes'):
             return text  # (published, as another type: neither hint applies)
-        if v in self._discovered:
+        if v in self._discovered or v in self._odom_heard:
             return text + ': the vehicle fell silent'
         if flying:
             self._hinted.add(v)

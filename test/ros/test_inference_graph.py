@@ -394,6 +394,28 @@ def _warned_of_the_wrong_type(context, capfd) -> None:
         assert 'nothing publishes' not in err.text and 'discover:=true' not in err.text
 
 
+def test_a_listed_vehicle_that_stops_fell_silent(context, capfd):
+    """/uav1 is listed, publishes odometry that the node receives, then its publishers go: the
+    warning says it fell silent, as for a discovered vehicle (before: it asked whether /uav1 was
+    the namespace of a vehicle that flies, the hint for a namespace nothing ever published)."""
+    inf = _inference(context, vehicles=['/uav1'], discovery_period=0.1, publisher_timeout=0.5)
+    helper = rclpy_node(context)
+    odom, reference = _vehicle_publishers(helper, '/uav1')
+    with _spinning(context, inf, helper) as ex:
+        assert spin_until(ex, lambda: odom.get_subscription_count() > 0, 30)
+        message = Odometry()
+        message.header.frame_id, message.child_frame_id = 'world', 'base_link'
+        message.pose.pose.orientation.w = 1.0
+        odom.publish(message)
+        assert spin_until(ex, lambda: '/uav1' in inf._odom_heard, 30)
+        helper.destroy_publisher(odom)
+        helper.destroy_publisher(reference)
+        err = Stderr(capfd)
+        assert spin_until(ex, lambda: err.has('the vehicle fell silent'), 30), err.text
+        assert '/uav1: nothing publishes /uav1/odom and /uav1/reference' in err.text
+        assert 'namespace of a vehicle that flies' not in err.text
+
+
 def test_no_list_while_namespaced_vehicles_fly_gives_a_hint(context, capfd):
     inf = _inference(context, discovery_period=0.1, publisher_timeout=0.5)
     helper = rclpy_node(context)

@@ -12,8 +12,8 @@ Errors a user can act on derive from :class:`cloe_ros.errors.CloeError` and are 
 ``ERROR: ...`` with exit status 1, never as a traceback. The exit statuses (:data:`EXIT_STATUS`,
 shown by ``cloe --help``) are those a shell expects: 2 for a command line that does not parse
 (argparse), 130 after Ctrl-C, and a reader that goes away while output is still to come
-(``head``) ends the command quietly with 141, the status of a tool killed by SIGPIPE (128 + 13), which is what
-``cat`` or ``grep`` give in the same pipeline.
+(``head``) ends the command quietly with 141, the status of a tool killed by SIGPIPE (128 + 13),
+which is what ``cat`` or ``grep`` give in the same pipeline.
 """
 
 from __future__ import annotations

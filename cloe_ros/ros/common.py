@@ -107,7 +107,7 @@ def run_node(
     limit_blas_threads()
     argv = list(args if args is not None else sys.argv)
     try:
-        check_params_files(argv)
+        sections = check_params_files(argv)
         _init_quietly(argv)
     except StartupError as err:
         print(f'ERROR: {err}', file=sys.stderr)
@@ -119,7 +119,7 @@ def run_node(
     status = 0
     try:
         node = node_factory()
-        for warning in params_files_for_others(argv, node.get_name()):
+        for warning in params_files_for_others(sections, node.get_name()):
             node.get_logger().warning(warning)
         executor = EventsExecutor() if events else SingleThreadedExecutor()
         executor.add_node(node)
@@ -168,12 +168,15 @@ def params_files(argv: Sequence[str]) -> list[str]:
     return files
 
 
-def check_params_files(argv: Sequence[str]) -> None:
+def check_params_files(argv: Sequence[str]) -> dict[str, list[str]]:
     """Refuse, with :class:`StartupError` naming the file and the problem, a ``--params-file``
     that cannot be read, is not YAML, or is not a mapping of node names to ``ros__parameters``
     (rcl would raise ``RCLError`` with a parser location, or, for a file that is not a mapping,
-    start without a word)."""
+    start without a word). Returns each file's node sections (``/cloe_inference``, ``/**``,
+    ``/fleet/cloe_shard1``: :func:`params_files_for_others`)."""
+    sections: dict[str, list[str]] = {}
     for name in params_files(argv):
+        sections[name] = []
         path = Path(name)
         try:
             text = path.read_text(encoding='utf-8')
@@ -201,45 +204,35 @@ def check_params_files(argv: Sequence[str]) -> None:
                 f'parameter file {name}: expected a mapping of node names to ros__parameters '
                 f'(as in config/*.yaml), found {type(content).__name__} {_short(content)}'
             )
-        _check_node_mapping(name, content, '')
+        _check_node_mapping(name, content, '', sections[name])
+    return sections
 
 
-def params_files_for_others(argv: Sequence[str], node_name: str) -> list[str]:
-    """A warning for each ``--params-file`` of ``argv`` (checked: :func:`check_params_files`)
-    none of whose sections applies to the node ``node_name``: sections for other node names
+def params_files_for_others(sections: dict[str, list[str]], node_name: str) -> list[str]:
+    """A warning for each parameter file of ``sections`` (each file's node sections, as
+    :func:`check_params_files` returns them) none of which applies to the node ``node_name``:
+    sections for other node names
     only, none for ``/**`` or a wildcard. ROS ignores such a file without a word, and the node
     runs on its defaults (e.g. ``config/inference.yaml``, whose section is ``cloe_inference``,
     given to a node renamed ``-r __node:=cloe_shard1``). A section counts as the node's when the
     last part of its name is the node's (whatever its namespace, so as never to warn of a file
     that applies)."""
     warnings = []
-    for name in params_files(argv):
-        content = yaml.safe_load(Path(name).read_text(encoding='utf-8'))
-        sections = _sections(content) if isinstance(content, dict) else []
-        last = [section.rstrip('/').rsplit('/', 1)[-1] for section in sections]
-        if sections and not any('*' in s or s == node_name for s in last):
+    for name, names in sections.items():
+        last = [section.rsplit('/', 1)[-1] for section in names]
+        if names and not any('*' in s or s == node_name for s in last):
             warnings.append(
-                f'parameter file {name}: it has parameters for {", ".join(sections)}, not for '
+                f'parameter file {name}: it has parameters for {", ".join(names)}, not for '
                 f'this node ({node_name}) nor /**: none of them apply (name its section '
                 f'{node_name}, or start the node under the name the file gives)'
             )
     return warnings
 
 
-def _sections(mapping: dict, where: str = '') -> list[str]:
-    """The node names of a parameter file's ``mapping``: the paths to its ``ros__parameters``."""
-    out = []
-    for key, value in mapping.items():
-        if key == 'ros__parameters':
-            out.append(where or '/')
-        elif isinstance(value, dict):
-            out += _sections(value, f'{where}/{str(key).strip("/")}')
-    return out
-
-
-def _check_node_mapping(name: str, mapping: dict, where: str) -> None:
+def _check_node_mapping(name: str, mapping: dict, where: str, sections: list[str]) -> None:
     """rcl's layout: ``<node>: ros__parameters: {...}``, node names possibly nested under
-    namespaces; any other value above ``ros__parameters`` is an error."""
+    namespaces; any other value above ``ros__parameters`` is an error. The node names found are
+    appended to ``sections``, absolute (``/fleet/cloe_shard1``)."""
     for key, value in mapping.items():
         here = f'{where}/{key}' if where else str(key)
         if key == 'ros__parameters':
@@ -253,8 +246,9 @@ def _check_node_mapping(name: str, mapping: dict, where: str) -> None:
                     f'parameter file {name}: {here} must be a mapping of parameter names to '
                     f'values, found {_short(value)}'
                 )
+            sections.append('/' + where.strip('/'))
         elif isinstance(value, dict):
-            _check_node_mapping(name, value, here)
+            _check_node_mapping(name, value, here, sections)
         else:
             raise StartupError(
                 f'parameter file {name}: {here} is a value outside any ros__parameters '

@@ -465,7 +465,7 @@ class InferenceNode(Node):
             since = self._missing_since.setdefault(v, now)
             if now - since < self.publisher_timeout or v in self._hinted:
                 continue
-            flying = self._flying_elsewhere(ns, topics)
+            flying = self._flying_elsewhere(ns, types)
             if v in self._warned_missing and not flying:
                 continue  # (warned; warned again, once, with the hint if vehicles take off)
             self._warned_missing.add(v)
@@ -490,7 +490,7 @@ class InferenceNode(Node):
 
     def _missing_inputs(self, namespace: str, types: dict[str, list[str]]) -> list[str]:
         """The inputs of the vehicle of ``namespace`` that nothing publishes as the type the node
-        subscribes with (a publisher of another type never matches: :meth:`_other_types`).
+        subscribes with (a publisher of another type never matches: :meth:`_wrong_types`).
         ``types``: each topic's types in the graph (``get_topic_names_and_types``), which count
         the subscriptions too; a topic's publishers are asked for theirs only where it has
         another type than the one the node takes."""
@@ -501,28 +501,38 @@ class InferenceNode(Node):
             if types.get(topic) == [msgtype]:
                 published = self.count_publishers(topic) > 0
             else:
-                published = msgtype in self._other_types(topic, '')
+                published = msgtype in self._publisher_types(topic)
             if not published:
                 missing.append(name)
         return missing
 
-    def _other_types(self, topic: str, msgtype: str) -> list[str]:
-        """The types, other than ``msgtype``, that ``topic`` is published as."""
-        return sorted({info.topic_type for info in self.get_publishers_info_by_topic(topic)}
-                      - {msgtype})  # fmt: skip
+    def _publisher_types(self, topic: str) -> set[str]:
+        """The types that ``topic`` is published as."""
+        return {info.topic_type for info in self.get_publishers_info_by_topic(topic)}
 
-    def _unpublished(self, v: str, missing: list[str], topics: bool = True) -> str:
+    def _wrong_types(self, v: str, missing: list[str]) -> dict[str, list[str]]:
+        """Of vehicle ``v``'s ``missing`` inputs, those published as other types than the node
+        takes (a sender of the wrong message), and those types."""
+        base = self.vehicle_ns[v].rstrip('/')
+        wrong = {}
+        for name in missing:
+            other = self._publisher_types(f'{base}/{name}') - {INPUT_TYPES[name]}
+            if other:
+                wrong[name] = sorted(other)
+        return wrong
+
+    def _unpublished(
+        self, v: str, missing: list[str], wrong: dict[str, list[str]], topics: bool = True
+    ) -> str:
         """What vehicle ``v``'s ``missing`` inputs lack: nothing publishes them, or they are
-        published as another type than the node takes (a sender of the wrong message). Named by
-        their topics, or by the inputs' names alone (in the vehicle's own status)."""
+        published as the ``wrong`` types (:meth:`_wrong_types`). Named by their topics, or by the
+        inputs' names alone (in the vehicle's own status)."""
         base = self.vehicle_ns[v].rstrip('/')
         absent, parts = [], []
         for name in missing:
-            topic = f'{base}/{name}'
-            other = self._other_types(topic, INPUT_TYPES[name])
-            shown = topic if topics else name
-            if other:
-                parts.append(f'{shown} is published as {" and ".join(other)}, not as '
+            shown = f'{base}/{name}' if topics else name
+            if name in wrong:
+                parts.append(f'{shown} is published as {" and ".join(wrong[name])}, not as '
                              f'{INPUT_TYPES[name]}')  # fmt: skip
             else:
                 absent.append(shown)
@@ -534,8 +544,9 @@ class InferenceNode(Node):
         """The warning of vehicle ``v``, whose ``missing`` inputs nothing has published for
         ``for_s`` s, with the hint of the namespaces ``flying`` (:meth:`_flying_elsewhere`)."""
         ns = self.vehicle_ns[v]
-        text = f'{ns}: {self._unpublished(v, missing)} (for {for_s:.0f} s)'
-        if not text.startswith(f'{ns}: nothing publishes'):
+        wrong = self._wrong_types(v, missing)
+        text = f'{ns}: {self._unpublished(v, missing, wrong)} (for {for_s:.0f} s)'
+        if len(wrong) == len(missing):
             return text  # (published, as another type: neither hint applies)
         if v in self._discovered or v in self._odom_heard:
             return text + ': the vehicle fell silent'
@@ -546,7 +557,7 @@ class InferenceNode(Node):
                 f'{text}; odom and reference are published under {shown}: set '
                 f'vehicles:=[{", ".join(flying)}] or discover:=true'
             )
-        given = (f'vehicles: [{", ".join(v or "/" for v in self.listed)}]' if self.listed
+        given = (f'vehicles: [{", ".join(n or "/" for n in self.listed)}]' if self.listed
                  else 'no vehicles:=[...] given')  # fmt: skip
         return text + (
             f'; is {ns} the namespace of a vehicle that flies? ({given}'
@@ -554,13 +565,13 @@ class InferenceNode(Node):
             + ')'
         )
 
-    def _flying_elsewhere(self, ns: str, topics) -> list[str]:
+    def _flying_elsewhere(self, ns: str, types: dict[str, list[str]]) -> list[str]:
         """With no ``vehicles`` list and no discovery: the other namespaces that publish odom
-        and reference (the vehicles the user likely meant), else []."""
+        and reference (the vehicles the user likely meant), else []. ``types``: the graph's
+        types of each topic."""
         if self.listed or self.discover:
             return []
-        types = dict(topics)
-        return [n for n in graph_namespaces(topics)
+        return [n for n in graph_namespaces(types.items())
                 if n != ns and not self._missing_inputs(n, types)]  # fmt: skip
 
     # -------------------------------------------------------------------------- callbacks
@@ -754,7 +765,8 @@ class InferenceNode(Node):
             missing = []  # (not for publisher_timeout yet: as the warning and the node's status)
         if missing:
             level = max(level, messages.WARN)
-            message += (f'; {self._unpublished(vehicle, missing, topics=False)} for '
+            wrong = self._wrong_types(vehicle, missing)
+            message += (f'; {self._unpublished(vehicle, missing, wrong, topics=False)} for '
                         f'{time.monotonic() - since:.0f} s')  # fmt: skip
         heard = self._odom_heard.get(vehicle)
         silent = None if heard is None else time.monotonic() - heard

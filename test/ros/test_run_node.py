@@ -91,23 +91,24 @@ def test_a_parameter_file_for_other_node_names_only_is_warned_of(tmp_path, monke
     file and its sections. A file with a section that can apply (the node's name in any
     namespace, /**, a wildcard) is not warned of."""
     config = ROOT / 'config' / 'inference.yaml'
-    (warning,) = common.params_files_for_others(['x', '--ros-args', '--params-file',
-                                                 str(config)], 'cloe_shard1')  # fmt: skip
+    def warnings(path, node_name):
+        argv = ['x', '--ros-args', '--params-file', str(path)]
+        return common.params_files_for_others(common.check_params_files(argv), node_name)
+
+    (warning,) = warnings(config, 'cloe_shard1')
     assert warning == (
         f'parameter file {config}: it has parameters for /cloe_inference, not for this node '
         '(cloe_shard1) nor /**: none of them apply (name its section cloe_shard1, or start the '
         'node under the name the file gives)'
     )
-    assert common.params_files_for_others(['--ros-args', '--params-file', str(config)],
-                                          'cloe_inference') == []  # fmt: skip
+    assert warnings(config, 'cloe_inference') == []
     for text in ('/**:\n  ros__parameters: {rate: 50}\n',
                  'fleet:\n  cloe_shard1:\n    ros__parameters: {rate: 50}\n',
                  '/fleet/cloe_shard*:\n  ros__parameters: {rate: 50}\n',
                  ''):  # fmt: skip
         path = tmp_path / 'params.yaml'
         path.write_text(text)
-        argv = ['--ros-args', '--params-file', str(path)]
-        assert common.params_files_for_others(argv, 'cloe_shard1') == [], text
+        assert warnings(path, 'cloe_shard1') == [], text
     # the node says it when it starts
     monkeypatch.setattr(SingleThreadedExecutor, 'spin', lambda self: rclpy.shutdown())
     status = common.run_node(Closed, args=['x', '--ros-args', '--params-file', str(config)])

@@ -18,11 +18,11 @@ what was sent, so nothing is lost on the way but in the burst attack. The script
 in this process on the clean flight (a glitch that costs one sample stays within 5 mm of it). It
 then stops the node with SIGINT: the node must still be running, exit 0 and print no traceback.
 
-**File attacks.** Copies of ``bags/position`` (rewritten by the package's ``BagWriter``, so they
-carry MCAP CRCs: the reader checks CRCs only where a file has them, and the sample bags, written
-by rosbags, have none), damaged or lying, given to ``cloe bag info``, ``cloe infer``, ``cloe
-report`` and ``cloe bag recover``; and ``cloe_inference --ros-args --params-file`` with a missing
-or malformed file. A failure must be one ``ERROR:`` line, exit status 1 and no partial output.
+**File attacks.** Copies of the first 12 s of ``bags/position`` (rewritten by the package's
+``BagWriter``, so they carry MCAP CRCs: the reader checks CRCs only where a file has them), damaged
+or lying, given to ``cloe bag info``, ``cloe infer``, ``cloe report`` and ``cloe bag recover``; and
+``cloe_inference --ros-args --params-file`` with a missing or malformed file. A failure must be one
+``ERROR:`` line, exit status 1 and no partial output.
 
 A traceback anywhere is BROKE. A row is ``n/a`` where this build does not have what the attack
 checks (lost inputs counted in ``/diagnostics``: a key with ``lost`` in its name); it is detected,

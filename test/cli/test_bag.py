@@ -261,7 +261,8 @@ def test_info_says_what_no_crc_vouches_for(sim_bag, tmp_path, capsys):
     """A bag written without CRCs (as rosbags writes MCAP, and so the NanoBench corpus): its
     messages' contents cannot be checked, and info says so in an ``unchecked:`` line, status 0
     (before: the same output as for a bag whose every byte was checked, so that damage to its
-    messages went unseen and unsaid). The package's own bags carry CRCs: no such line."""
+    messages went unseen and unsaid). The package's own bags carry CRCs, the sample bags in
+    bags/ among them: no such line."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -278,8 +279,9 @@ def test_info_says_what_no_crc_vouches_for(sim_bag, tmp_path, capsys):
     (line,) = [line for line in out.splitlines() if line.startswith('unchecked:')]
     assert line == ('unchecked: plain.mcap: 1 of its 1 chunks carry no CRC (written without): '
                     "their messages' contents cannot be checked, nor can the data section")
-    status, out, err = run(capsys, 'info', sim_bag)
-    assert (status, err) == (0, '') and 'unchecked' not in out
+    for own in (sim_bag, POSITION, ROOT / 'bags' / 'trajectory'):  # (the sample bags too)
+        status, out, err = run(capsys, 'info', own)
+        assert (status, err) == (0, '') and 'unchecked' not in out, own
 
 
 def test_recover_onto_a_full_disk(sim_bag, tmp_path, capsys, monkeypatch):

@@ -58,10 +58,29 @@ class InferResult:
     #: vehicles of a run that gave no estimate at all, and why (the run ends in an error when
     #: every vehicle is one of them)
     unusable: dict[str, str] = field(default_factory=dict)
+    #: namespaces of the bag with an odom or reference topic but no usable pair, and why (not
+    #: inferred; the others are): a ``warning:`` line each
+    skipped: list[str] = field(default_factory=list)
 
 
 def check_inputs(topics: dict[str, str], path: Path) -> list[str]:
     """Vehicle namespaces with usable odom/reference pairs; a clear error otherwise."""
+    vehicles, problems = survey_inputs(topics)
+    if not vehicles:
+        found = ', '.join(f'{n} ({t})' for n, t in sorted(topics.items())) or 'no topics'
+        detail = '; '.join(problems) if problems else f'the bag has {found}'
+        msg = (
+            f'{path}: no vehicle to infer: each needs <ns>/odom (nav_msgs/msg/Odometry) and '
+            f'<ns>/reference (geometry_msgs/msg/PoseStamped); {detail}'
+        )
+        raise CliError(msg)
+    return vehicles
+
+
+def survey_inputs(topics: dict[str, str]) -> tuple[list[str], list[str]]:
+    """The vehicle namespaces of a bag's ``topics`` (name: type) with a usable odom/reference
+    pair, and, in words, the namespaces with one of the two but no usable pair (one missing, or
+    of another type)."""
     odoms = {n[: -len(ODOM) - 1]: t for n, t in topics.items() if n.endswith('/' + ODOM)}
     refs = {n[: -len(REFERENCE) - 1]: t for n, t in topics.items()
             if n.endswith('/' + REFERENCE)}  # fmt: skip
@@ -81,15 +100,7 @@ def check_inputs(topics: dict[str, str], path: Path) -> list[str]:
             problems.append(f'vehicle {label} has {ns}/{REFERENCE} but no {ns}/{ODOM} topic')
         else:
             vehicles.append(ns)
-    if not vehicles:
-        found = ', '.join(f'{n} ({t})' for n, t in sorted(topics.items())) or 'no topics'
-        detail = '; '.join(problems) if problems else f'the bag has {found}'
-        msg = (
-            f'{path}: no vehicle to infer: each needs <ns>/odom (nav_msgs/msg/Odometry) and '
-            f'<ns>/reference (geometry_msgs/msg/PoseStamped); {detail}'
-        )
-        raise CliError(msg)
-    return vehicles
+    return vehicles, problems
 
 
 def infer_bag(
@@ -110,6 +121,9 @@ def infer_bag(
     start = time.monotonic()
     with BagReader(bag) as reader:
         found = _vehicles(reader, bag, vehicles)
+        # (with no --vehicles, every namespace was meant: say which cannot be inferred)
+        skipped = [] if vehicles else survey_inputs(
+            {name: info.msgtype for name, info in reader.topics.items()})[1]  # fmt: skip
         if output.exists():
             raise CliError(f'{output} exists already, not overwriting.')
         count = worker_count(jobs, len(found))
@@ -139,7 +153,8 @@ def infer_bag(
             progress('infer', 1.0)
         duration = (reader.end_ns - reader.start_ns) / NS
     return InferResult(vehicles=found, duration_s=duration, wall_s=time.monotonic() - start,
-                       written=dict(written), **stats)  # fmt: skip
+                       written=dict(written), skipped=[f'{bag}: {why}' for why in skipped],
+                       **stats)  # fmt: skip
 
 
 def _split(reader, bag, settings, found, count, write, copies, progress) -> dict:
@@ -387,7 +402,8 @@ def _unusable(bag: Path, vehicle: str, engine: VehicleEngine, malformed: int, re
 
 def _print(result: InferResult, output: Path) -> None:
     """What ``cloe infer`` prints of a run: per vehicle, what was written, and a warning per
-    vehicle that gave no estimate."""
+    vehicle that gave no estimate and per namespace not inferred (no usable odom/reference
+    pair)."""
     for v in result.vehicles:
         rejected = sum(result.rejected[v].values()) + result.malformed[v]
         detail = ', '.join(f'{k}: {n}' for k, n in sorted(result.rejected[v].items()))
@@ -406,6 +422,8 @@ def _print(result: InferResult, output: Path) -> None:
     )
     for why in result.unusable.values():
         print(f'warning: {why}', file=sys.stderr)
+    for why in result.skipped:
+        print(f'warning: {why}: not inferred', file=sys.stderr)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from bag_fixtures import ORIGIN_NS, read_topics, simulate, write_sim_bag
+from bag_fixtures import ORIGIN_NS, copy_bag, read_topics, simulate, write_sim_bag
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
@@ -192,6 +192,23 @@ def test_reference_without_odom(tmp_path, capsys):
         capsys, f'{bag}: {NO_VEHICLE}; vehicle /uav1 has /uav1/reference but no /uav1/odom topic',
         bag, '-o', tmp_path / 'out',
     )  # fmt: skip
+
+
+def test_a_namespace_without_a_usable_pair_beside_a_vehicle_is_a_warning(sim_bag, tmp_path,
+                                                                          capsys):
+    """A bag whose root vehicle has odom and reference, and /uav1 odom alone: the vehicle is
+    inferred, and /uav1, which cannot be, is a ``warning:`` line naming what it lacks, status 0
+    (before: skipped without a word, while the README promised the warning). Not said when
+    ``--vehicles`` chose the vehicles."""
+    ((_, msgtype, odom),) = read_topics(sim_bag, ['/odom'])
+    bag = copy_bag(sim_bag, tmp_path / 'bag', [('/uav1/odom', msgtype, odom)])
+    status, out, err = run_infer(capsys, bag, '-o', tmp_path / 'out', '-q')
+    assert status == 0, err
+    assert out.startswith('/: 1501 steps, 0 input(s) rejected\n'), out
+    assert err == (f'warning: {bag}: vehicle /uav1 has /uav1/odom but no /uav1/reference topic: '
+                   'not inferred\n')  # fmt: skip
+    status, out, err = run_infer(capsys, bag, '-o', tmp_path / 'chosen', '-q', '--vehicles', '/')
+    assert (status, err) == (0, '')
 
 
 def test_odom_of_the_wrong_type(tmp_path, capsys):

@@ -38,8 +38,10 @@ baselines, with the coverage of the 95 % radius.
 
 #: Help of ``--node``, which every command with ``--config`` takes.
 NODE_HELP = (
-    "read the --config file as ROS reads it for the node NAME: its '/**' section, then NAME's, "
-    'whose values win (default: %(default)s; e.g. cloe_shard1 for a node renamed so)'
+    'read the --config file as rclpy gives it to the node NAME: every section that applies to '
+    "that name ('/**', NAME's, nested namespaces, '/*' and '/**' patterns), in the file's "
+    'order, the later values winning (default: %(default)s; e.g. cloe_shard1 for a node renamed '
+    'so, /fleet/cloe_shard1 in a namespace)'
 )
 
 

@@ -7,10 +7,12 @@ The keys are the node's parameter names; the same YAML file configures both::
         algorithm: cloe_sm
         rate: 100.0
 
-(a flat mapping of the same keys works too). As ROS reads a parameter file, a node takes the
-``/**:`` section (every node) and then its own (``cloe_inference:`` or ``/cloe_inference:``), whose
-values win; another node name (a node renamed ``cloe_shard1``) is chosen by ``node_name``. Unknown
-keys are refused, naming them. Names, defaults, ranges and which configuration field each key
+(a flat mapping of the same keys works too). As rclpy gives a parameter file to a node, the node
+takes every section that applies to its name (its own, ``cloe_inference:`` or ``/cloe_inference:``;
+``/**:`` for every node; wildcards and nested namespaces: :mod:`cloe_ros.io.param_sections`), in
+the file's order, the later values winning; another node name (a node renamed ``cloe_shard1``, or
+``/fleet/cloe_shard1`` in a namespace) is chosen by ``node_name``. Unknown keys are refused,
+naming them. Names, defaults, ranges and which configuration field each key
 fills are those of the table in :mod:`cloe_ros.settings`, which the node declares its parameters
 from: a value the node refuses is refused here.
 """
@@ -28,6 +30,7 @@ from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import IdentifierConfig
 from cloe_ros.core.prediction import PredictionConfig
 from cloe_ros.io.outputs import OutputConfig, OutputConfigError
+from cloe_ros.io.param_sections import applies, fully_qualified, parameters_for
 from cloe_ros.settings import ALGORITHMS, SETTINGS, engine_settings, node_settings
 
 __all__ = ['ALGORITHMS', 'DEFAULTS', 'RANGES', 'SettingsError', 'build_configs', 'load_settings']
@@ -91,11 +94,12 @@ NODE_NAME = 'cloe_inference'
 
 
 def load_settings(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
-    """Parameter values from a YAML file of ROS node sections (``<name>: ros__parameters:
-    {...}``), or a flat mapping of them. Of node sections, those of ``/**`` and then of
-    ``node_name`` (``/`` before either name optional), the latter's values winning, as ROS gives a
-    node named ``node_name``. Raises :class:`SettingsError` for unreadable files, unknown keys and
-    a file with sections for other nodes but none for ``node_name`` (naming them)."""
+    """Parameter values from a YAML file of ROS node sections (``<name>: ros__parameters: {...}``),
+    or a flat mapping of them. Of node sections, those that apply to the node ``node_name`` (its
+    fully qualified name; ``/`` first optional), in the file's order, as rclpy gives them to it
+    (:func:`~cloe_ros.io.param_sections.parameters_for`). Raises :class:`SettingsError` for
+    unreadable files, unknown keys and a file with sections for other nodes but none for
+    ``node_name`` (naming them)."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
@@ -137,26 +141,17 @@ def command_settings(
 
 
 def _node_parameters(data: dict[str, Any], node_name: str, path: Path) -> dict[str, Any]:
-    """The parameters of ``data`` (a parameter file's mapping) for the node ``node_name``: its
-    ``/**`` section updated with its own; ``data`` itself if it has no node section (a flat
-    mapping). Other nodes' sections are ignored, as ROS ignores them; but a file with only
-    sections for other nodes (no ``/**``, none for ``node_name``) is refused, naming them: it was
-    meant for another node name."""
-    sections = {
-        key: value['ros__parameters']
-        for key, value in data.items()
-        if isinstance(value, dict) and isinstance(value.get('ros__parameters'), dict)
-    }
+    """The parameters of ``data`` (a parameter file's mapping) for the node ``node_name``: those
+    of every section that applies to it, in the file's order, as rclpy gives them
+    (:mod:`cloe_ros.io.param_sections`); ``data`` itself if it has no node section (a flat
+    mapping). A file none of whose sections applies (only other nodes') is refused, naming
+    them: it was meant for another node name."""
+    node = fully_qualified(node_name)
+    values, sections = parameters_for(data, node)
     if not sections:
         return data
-    name = '/' + node_name.strip('/')
-    named = {key for key in sections if str(key).strip('/') != '**'}
-    own = [key for key in named if '/' + str(key).strip('/') == name]
-    if not own and len(named) == len(sections):
-        msg = (f'{path} has parameters for {", ".join(sorted(map(str, named)))}, not for '
-               f'{node_name} nor /**: name the node to read with --node NAME')  # fmt: skip
+    if not any(applies(name, node) for name in sections):
+        msg = (f'{path} has parameters for {", ".join(sections)}, not for {node} nor /**: '
+               'name the node to read with --node NAME')  # fmt: skip
         raise SettingsError(msg)
-    values: dict[str, Any] = {}
-    for key in [k for k in sections if k not in named] + sorted(own, key=str):
-        values.update(sections[key])
     return values

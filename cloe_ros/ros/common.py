@@ -38,6 +38,7 @@ from rclpy.qos import (
 from rclpy.task import Future
 
 from cloe_ros.interrupts import uninterrupted
+from cloe_ros.io.param_sections import applies
 from cloe_ros.ros.errors import ParameterError, StartupError
 from cloe_ros.threads import limit_blas_threads
 
@@ -119,7 +120,7 @@ def run_node(
     status = 0
     try:
         node = node_factory()
-        for warning in params_files_for_others(sections, node.get_name()):
+        for warning in params_files_for_others(sections, node.get_fully_qualified_name()):
             node.get_logger().warning(warning)
         executor = EventsExecutor() if events else SingleThreadedExecutor()
         executor.add_node(node)
@@ -208,23 +209,21 @@ def check_params_files(argv: Sequence[str]) -> dict[str, list[str]]:
     return sections
 
 
-def params_files_for_others(sections: dict[str, list[str]], node_name: str) -> list[str]:
+def params_files_for_others(sections: dict[str, list[str]], node: str) -> list[str]:
     """A warning for each parameter file of ``sections`` (each file's node sections, as
-    :func:`check_params_files` returns them) none of which applies to the node ``node_name``:
-    sections for other node names
-    only, none for ``/**`` or a wildcard. ROS ignores such a file without a word, and the node
-    runs on its defaults (e.g. ``config/inference.yaml``, whose section is ``cloe_inference``,
-    given to a node renamed ``-r __node:=cloe_shard1``). A section counts as the node's when the
-    last part of its name is the node's (whatever its namespace, so as never to warn of a file
-    that applies)."""
+    :func:`check_params_files` returns them) none of which applies to the node of fully
+    qualified name ``node`` (rclpy's matching: :mod:`cloe_ros.io.param_sections`). ROS ignores
+    such a file without a word, and the node runs on its defaults (e.g.
+    ``config/inference.yaml``, whose section is ``cloe_inference``, given to a node renamed
+    ``-r __node:=cloe_shard1``, or a section ``/other/cloe_shard1`` given to
+    ``/fleet/cloe_shard1``)."""
     warnings = []
     for name, names in sections.items():
-        last = [section.rsplit('/', 1)[-1] for section in names]
-        if names and not any('*' in s or s == node_name for s in last):
+        if names and not any(applies(section, node) for section in names):
             warnings.append(
                 f'parameter file {name}: it has parameters for {", ".join(names)}, not for '
-                f'this node ({node_name}) nor /**: none of them apply (name its section '
-                f'{node_name}, or start the node under the name the file gives)'
+                f'this node ({node}) nor /**: none of them apply (name its section {node}, or '
+                'start the node under the name the file gives)'
             )
     return warnings
 

@@ -350,7 +350,7 @@ def test_config_of_a_renamed_node_is_read_with_node(sim_bag, tmp_path, capsys):
         assert stdout.startswith(f'/: {steps} steps, 0 input(s) rejected\n')
         assert '/shard/state' in topic_counts(out)
     config.write_text('cloe_shard1:\n  ros__parameters:\n    rate: 20.0\n')
-    assert_error(capsys, f'{config} has parameters for cloe_shard1, not for cloe_inference nor '
+    assert_error(capsys, f'{config} has parameters for /cloe_shard1, not for /cloe_inference nor '
                  '/**: name the node to read with --node NAME',
                  sim_bag, '-o', tmp_path / 'out', '--config', config)  # fmt: skip
     assert not (tmp_path / 'out').exists()

@@ -153,12 +153,57 @@ def test_a_node_reads_the_wildcard_section_then_its_own(tmp_path, text, node, ex
     assert load_settings(path, node) == expected
 
 
+#: Sections rclpy gives a node, beside its own and /**: nested namespaces, wildcards (/* one
+#: name, /** any number, none included), in the file's order (a later /** overrides the node's
+#: own section). Each case was checked against rclpy 7.1: a node created with --params-file on
+#: the same text takes these values.
+RCLPY_RULES = """\
+/fleet/cloe_shard1:
+  ros__parameters: {rate: 20.0, algorithm: cloe_sm, prediction_rate: 2.0}
+fleet:
+  cloe_shard1:
+    ros__parameters: {rate: 25.0}
+/**/cloe_shard1:
+  ros__parameters: {prediction_rate: 4.0}
+/*/cloe_shard2:
+  ros__parameters: {rate: 40.0}
+/**:
+  ros__parameters: {algorithm: cloe_iv}
+/fleet/*:
+  ros__parameters: {rate: 10.0}
+"""
+
+
+@pytest.mark.parametrize(
+    ('node', 'expected'),
+    [
+        ('/fleet/cloe_shard1', {'rate': 10.0, 'algorithm': 'cloe_iv', 'prediction_rate': 4.0}),
+        ('cloe_shard1', {'algorithm': 'cloe_iv', 'prediction_rate': 4.0}),
+        ('/a/b/cloe_shard1', {'algorithm': 'cloe_iv', 'prediction_rate': 4.0}),
+        ('/fleet/cloe_shard2', {'rate': 10.0, 'algorithm': 'cloe_iv'}),
+        ('/a/cloe_shard2', {'rate': 40.0, 'algorithm': 'cloe_iv'}),
+        ('/a/b/cloe_shard2', {'algorithm': 'cloe_iv'}),
+        ('cloe_inference', {'algorithm': 'cloe_iv'}),
+    ],
+)
+def test_a_node_takes_the_sections_rclpy_gives_it(tmp_path, node, expected):
+    """``--node`` names a node as rclpy gives it a parameter file: nested namespaces, ``/*``
+    and ``/**`` patterns, every section that applies in the file's order (before: only ``/**``
+    and the node's exact name, ``/**`` first whatever the order, and a nested section was an
+    unknown setting, a wildcard one refused)."""
+    path = tmp_path / 'params.yaml'
+    path.write_text(RCLPY_RULES)
+    assert load_settings(path, node) == expected
+
+
 @pytest.mark.parametrize(
     ('text', 'reason'),
     [
-        ('cloe_shard1:\n  ros__parameters:\n    rate: 50.0\n', 'cloe_shard1'),
+        ('cloe_shard1:\n  ros__parameters:\n    rate: 50.0\n', '/cloe_shard1'),
         ('cloe_shard1:\n  ros__parameters:\n    rate: 50.0\nquadrotor_sim:\n  ros__parameters:\n'
-         '    scenario: hover\n', 'cloe_shard1, quadrotor_sim'),
+         '    scenario: hover\n', '/cloe_shard1, /quadrotor_sim'),
+        ('fleet:\n  cloe_inference:\n    ros__parameters:\n      rate: 50.0\n',
+         '/fleet/cloe_inference'),  # (a namespace's node, not the root's)
     ],
 )  # fmt: skip
 def test_a_file_for_other_nodes_names_them_and_the_option(tmp_path, text, reason):
@@ -169,7 +214,7 @@ def test_a_file_for_other_nodes_names_them_and_the_option(tmp_path, text, reason
     path.write_text(text)
     with pytest.raises(SettingsError) as info:
         load_settings(path)
-    assert str(info.value) == (f'{path} has parameters for {reason}, not for cloe_inference nor '
+    assert str(info.value) == (f'{path} has parameters for {reason}, not for /cloe_inference nor '
                                '/**: name the node to read with --node NAME')  # fmt: skip
 
 

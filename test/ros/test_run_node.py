@@ -88,27 +88,34 @@ def test_a_parameter_file_for_other_node_names_only_is_warned_of(tmp_path, monke
     """config/inference.yaml (section cloe_inference) given to a node named otherwise: ROS
     ignores the file without a word and the node runs on its defaults (before: so it did here,
     the trap docs/multihost.md describes for renamed shards); now the node warns, naming the
-    file and its sections. A file with a section that can apply (the node's name in any
-    namespace, /**, a wildcard) is not warned of."""
+    file and its sections. A file with a section that applies, as rclpy decides it (the node's
+    fully qualified name, nested or not, /**, a wildcard), is not warned of; one for the same
+    name in another namespace is (before: any section ending in the node's name passed)."""
     config = ROOT / 'config' / 'inference.yaml'
-    def warnings(path, node_name):
-        argv = ['x', '--ros-args', '--params-file', str(path)]
-        return common.params_files_for_others(common.check_params_files(argv), node_name)
 
-    (warning,) = warnings(config, 'cloe_shard1')
+    def warnings(path, node):
+        argv = ['x', '--ros-args', '--params-file', str(path)]
+        return common.params_files_for_others(common.check_params_files(argv), node)
+
+    (warning,) = warnings(config, '/cloe_shard1')
     assert warning == (
         f'parameter file {config}: it has parameters for /cloe_inference, not for this node '
-        '(cloe_shard1) nor /**: none of them apply (name its section cloe_shard1, or start the '
+        '(/cloe_shard1) nor /**: none of them apply (name its section /cloe_shard1, or start the '
         'node under the name the file gives)'
     )
-    assert warnings(config, 'cloe_inference') == []
-    for text in ('/**:\n  ros__parameters: {rate: 50}\n',
-                 'fleet:\n  cloe_shard1:\n    ros__parameters: {rate: 50}\n',
-                 '/fleet/cloe_shard*:\n  ros__parameters: {rate: 50}\n',
-                 ''):  # fmt: skip
-        path = tmp_path / 'params.yaml'
+    assert warnings(config, '/cloe_inference') == []
+    path = tmp_path / 'params.yaml'
+    for text, node, applies in (
+        ('/**:\n  ros__parameters: {rate: 50}\n', '/fleet/cloe_shard1', True),
+        ('fleet:\n  cloe_shard1:\n    ros__parameters: {rate: 50}\n', '/fleet/cloe_shard1', True),
+        ('fleet:\n  cloe_shard1:\n    ros__parameters: {rate: 50}\n', '/cloe_shard1', False),
+        ('/fleet/*:\n  ros__parameters: {rate: 50}\n', '/fleet/cloe_shard1', True),
+        ('/**/cloe_shard1:\n  ros__parameters: {rate: 50}\n', '/cloe_shard1', True),
+        ('/other/cloe_shard1:\n  ros__parameters: {rate: 50}\n', '/fleet/cloe_shard1', False),
+        ('', '/cloe_shard1', True),  # (an empty file sets nothing: nothing to say)
+    ):
         path.write_text(text)
-        assert warnings(path, 'cloe_shard1') == [], text
+        assert (warnings(path, node) == []) is applies, (text, node)
     # the node says it when it starts
     monkeypatch.setattr(SingleThreadedExecutor, 'spin', lambda self: rclpy.shutdown())
     status = common.run_node(Closed, args=['x', '--ros-args', '--params-file', str(config)])

@@ -44,7 +44,8 @@ exit status:
   {EXIT_ERROR}    an error: one line "ERROR: ..." on stderr says what is wrong (bad input, a
        damaged bag, an output that exists, a full disk, ...) and nothing is left half-written
   {EXIT_USAGE}    the command line does not parse (unknown option, missing argument)
-  {EXIT_INTERRUPTED}  interrupted by Ctrl-C (SIGINT)
+  {EXIT_INTERRUPTED}  interrupted by Ctrl-C (SIGINT); `cloe live`, which runs until Ctrl-C,
+       ends with 0
   {EXIT_PIPE_CLOSED}  standard output was closed by its reader (e.g. `| head`) while output was
        still to come: the command stops quietly, as a tool ended by SIGPIPE
 """

@@ -30,7 +30,13 @@ from cloe_ros.core.estimator import ConfigError, EstimatorConfig
 from cloe_ros.core.identifier import IdentifierConfig
 from cloe_ros.core.prediction import PredictionConfig
 from cloe_ros.io.outputs import OutputConfig, OutputConfigError
-from cloe_ros.io.param_sections import applies, fully_qualified, parameters_for
+from cloe_ros.io.param_sections import (
+    ParamFileError,
+    applies,
+    fully_qualified,
+    load,
+    parameters_for,
+)
 from cloe_ros.settings import ALGORITHMS, SETTINGS, engine_settings, node_settings
 
 __all__ = ['ALGORITHMS', 'DEFAULTS', 'RANGES', 'SettingsError', 'build_configs', 'load_settings']
@@ -102,7 +108,7 @@ def load_settings(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any
     ``node_name`` (naming them)."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load(path.read_text())  # (as rcl reads it: cloe_ros.io.param_sections)
     except OSError as err:
         msg = f'cannot read {path}: {err.strerror or err}'
         raise SettingsError(msg) from err
@@ -117,7 +123,10 @@ def load_settings(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any
     if not isinstance(data, dict):
         msg = f'{path}: expected a mapping of parameter names to values'
         raise SettingsError(msg)
-    data = _node_parameters(data, node_name, path)
+    try:
+        data = _node_parameters(data, node_name, path)
+    except ParamFileError as err:
+        raise SettingsError(f'{path}: {err}') from err
     try:
         build_configs(data)  # refuse unknown keys and bad values now, naming the file
         node_values({k: v for k, v in data.items() if k in SETTINGS})

@@ -15,7 +15,19 @@ A section's name is its keys joined by ``/`` with a leading ``/`` (``cloe_infere
 which ``/*`` stands for one name and ``/**`` for any number of them, none included: rclcpp's
 rule (``parameter_map_from``, ``/*`` becoming ``(/\w+)``), which rclpy follows. A node takes
 every section that matches it, in the file's order, the later one's values winning: a ``/**``
-written after a node's own section overrides it. (Measured with rclpy 7.1, Jazzy.)
+written after a node's own section overrides it. Two spellings of one name rcl stores alike
+(``fleet: cloe_shard1:`` and ``fleet/cloe_shard1:``; a key written twice) are one section, at
+the place of the first. (Measured with rclpy 7.1, Jazzy.)
+
+The file is read as rcl reads it (:func:`load`): keys are strings as written (``on:`` is the
+node ``on``); a plain value is a bool (``true``, ``yes``, ``on``, ``y``, ... and their
+negations), else an integer (C's ``strtoll``: ``0x10`` is 16, ``010`` is 8), else a float
+(``strtod``: ``5e1``, ``1.0e3``, ``.inf``, ``nan``; one out of range stays a string), else a
+string, and a quoted or ``!!str`` value is a string; a repeated key merges into the first;
+nested parameter names are dotted (``a: {b: 1}`` is ``a.b``). What rcl refuses is refused with
+a :class:`ParamFileError` saying why: aliases, a parameter or ``ros__parameters`` without a
+value, an array of mixed types, a section name that is not a node name (``cloe-x``,
+``/fleet/cloe_*``, ``1abc``, a ``//``).
 
 The inference node warns at start-up of a file none of whose sections it takes
 (:func:`cloe_ros.ros.common.params_files_for_others`), and ``cloe infer --config FILE --node
@@ -25,27 +37,196 @@ No rclpy here.
 
 from __future__ import annotations
 
+import math
 import re
-from typing import Any
+import sys
+from typing import Any, ClassVar
+
+import yaml
 
 PARAMETERS = 'ros__parameters'
 
 
-def node_sections(mapping: dict, where: str = '') -> list[tuple[str, dict[str, Any]]]:
-    """The node sections of a parameter file's ``mapping``, in the file's order: ``(name,
-    parameters)``, nested names joined (``/fleet/cloe_shard1``). Values that are not mappings
-    are skipped (:func:`cloe_ros.ros.common.check_params_files` refuses them where the node
-    reads the file)."""
-    sections = []
+class ParamFileError(ValueError):
+    """A parameter file rcl refuses (or reads otherwise than its text suggests), in words."""
+
+
+_TRUE = frozenset('y Y yes Yes YES true True TRUE on On ON'.split())
+_FALSE = frozenset('n N no No NO false False FALSE off Off OFF'.split())
+_INT = re.compile(r'[+-]?(?:0[xX][0-9a-fA-F]+|0[0-7]*|[1-9][0-9]*)')
+_DECIMAL = re.compile(r'[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?')
+_HEX = re.compile(r'[+-]?0[xX](?:[0-9a-fA-F]+\.?[0-9a-fA-F]*|\.[0-9a-fA-F]+)(?:[pP][+-]?[0-9]+)?')
+_WORD = re.compile(r'[+-]?(?:inf|infinity|nan)', re.IGNORECASE)
+_YAML_SPECIAL = re.compile(r'[+-]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)')
+_PLAIN = 'tag:cloe_ros,2026:rcl-plain'
+_TOKEN = re.compile(r'\*\*?|[A-Za-z_][A-Za-z0-9_]*')
+
+
+def scalar(text: str) -> bool | int | float | str:
+    """A plain YAML value as rcl types it (see the module docstring)."""
+    if text in _TRUE:
+        return True
+    if text in _FALSE:
+        return False
+    if _INT.fullmatch(text):
+        digits = text.lstrip('+-')
+        base = 16 if digits[:2] in ('0x', '0X') else 8 if digits[0] == '0' else 10
+        value = int(digits, base) * (-1 if text[0] == '-' else 1)
+        if -(2**63) <= value < 2**63:  # (else strtoll's ERANGE: strtod's turn)
+            return value
+    if _YAML_SPECIAL.fullmatch(text):
+        return float(text.replace('.', '', 1))
+    if _WORD.fullmatch(text):
+        return float(text)
+    hexadecimal = _HEX.fullmatch(text) is not None
+    if hexadecimal or _DECIMAL.fullmatch(text):
+        value = float.fromhex(text) if hexadecimal else float(text)
+        mantissa = re.split('[pP]' if hexadecimal else '[eE]', text)[0]
+        zero = not re.search('[1-9a-fA-F]' if hexadecimal else '[1-9]', mantissa.lstrip('+-0xX'))
+        # strtod's ERANGE (rcl then keeps the text): overflow, underflow, a subnormal result
+        if math.isinf(value) or (value == 0.0 and not zero) or 0 < abs(value) < sys.float_info.min:
+            return text
+        return value
+    return text
+
+
+class _Loader(yaml.SafeLoader):
+    """PyYAML as rcl's parser reads a parameter file (see the module docstring)."""
+
+    # (every plain scalar gets _PLAIN: typed by scalar())
+    yaml_implicit_resolvers: ClassVar[dict] = {}
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            mark = self.peek_event().start_mark
+            raise yaml.composer.ComposerError(
+                None, None, 'an alias (*name): rcl does not support aliasing', mark
+            )
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):
+        if not isinstance(node, yaml.MappingNode):
+            raise yaml.constructor.ConstructorError(
+                None, None, f'expected a mapping, found {node.id}', node.start_mark
+            )
+        mapping: dict = {}
+        for key_node, value_node in node.value:
+            if not isinstance(key_node, yaml.ScalarNode):
+                raise yaml.constructor.ConstructorError(
+                    None, None, 'a key that is not a name', key_node.start_mark
+                )
+            key = key_node.value  # (as written: rcl's keys are strings)
+            if key == '<<' and key_node.style is None:
+                raise yaml.constructor.ConstructorError(
+                    None, None, 'a merge key (<<): rcl does not support aliasing',
+                    key_node.start_mark,
+                )  # fmt: skip
+            value = self.construct_object(value_node, deep=True)
+            if isinstance(mapping.get(key), dict) and isinstance(value, dict):
+                mapping[key] = _merged(mapping[key], value)  # (a repeated key, merged as rcl)
+            else:
+                mapping[key] = value
+        return mapping
+
+
+_Loader.add_implicit_resolver(_PLAIN, re.compile(r'.*', re.DOTALL), None)
+
+
+def _plain(loader: _Loader, node: yaml.ScalarNode):
+    """A scalar as rcl types it: by :func:`scalar` when plain, whatever its tag but ``!!str``
+    (``!!float 5`` is the integer 5); a quoted one is a string; an empty one has no value."""
+    if node.style is not None:
+        return node.value
+    return scalar(node.value) if node.value else None
+
+
+_Loader.add_constructor(_PLAIN, _plain)
+for _tag in ('null', 'bool', 'int', 'float', 'timestamp', 'binary'):
+    _Loader.add_constructor(f'tag:yaml.org,2002:{_tag}', _plain)
+
+
+def _merged(first: dict, then: dict) -> dict:
+    out = dict(first)
+    for key, value in then.items():
+        both = isinstance(out.get(key), dict) and isinstance(value, dict)
+        out[key] = _merged(out[key], value) if both else value
+    return out
+
+
+def load(text: str) -> Any:
+    """A parameter file's text as rcl reads it (None for an empty file). Raises
+    :class:`yaml.YAMLError` (with its line) for what is not YAML or what rcl refuses in it
+    (aliases)."""
+    return yaml.load(text, Loader=_Loader)  # (a safe loader: yaml.SafeLoader's)
+
+
+def node_sections(mapping: dict) -> list[tuple[str, dict[str, Any]]]:
+    """The node sections of a parameter file's ``mapping`` (from :func:`load`), in the file's
+    order: ``(name, parameters)``, the name fully qualified (nested keys joined,
+    ``/fleet/cloe_shard1``), the parameters' nested names dotted; two spellings rcl stores as
+    one name merged at the first's place. Values above ``ros__parameters`` that are not
+    mappings are skipped (:func:`cloe_ros.ros.common.check_params_files` refuses them where the
+    node reads the file). Raises :class:`ParamFileError` for a section rcl refuses."""
+    merged: dict[str, dict[str, Any]] = {}
+    for stored, parameters in _walk(mapping, None):
+        merged.setdefault(stored, {}).update(parameters)
+    return [('/' + stored.lstrip('/'), parameters) for stored, parameters in merged.items()]
+
+
+def _walk(mapping: dict, where: str | None):
+    """``(name as rcl stores it, parameters)`` of every section under ``mapping``."""
     for key, value in mapping.items():
         if key == PARAMETERS or not isinstance(value, dict):
             continue
-        name = f'{where}/{str(key).strip("/")}'
-        parameters = value.get(PARAMETERS, False)
-        if parameters is None or isinstance(parameters, dict):
-            sections.append((name, parameters or {}))
-        sections += node_sections(value, name)
-    return sections
+        if where is None:
+            stored = key
+        elif key.startswith('/'):
+            raise ParamFileError(f'{where}: {key}: a nested name starts with "/" (rcl: a repeated '
+                                 'forward slash); write it without')  # fmt: skip
+        else:
+            stored = f'{where.rstrip("/")}/{key}'
+        if PARAMETERS in value:
+            _check_name(stored)
+            parameters = value[PARAMETERS]
+            if parameters is None:
+                raise ParamFileError(f'{stored}: ros__parameters has no value (rcl refuses it; '
+                                     'write {} for none)')  # fmt: skip
+            if isinstance(parameters, dict):
+                yield stored, _flat(stored, parameters, '')
+        yield from _walk(value, stored)
+
+
+def _check_name(stored: str) -> None:
+    tokens = (stored[1:] if stored.startswith('/') else stored).split('/')
+    bad = [t for t in tokens if not _TOKEN.fullmatch(t)]
+    if bad:
+        what = 'an empty name (a "//" or a "/" at the end)' if '' in bad else f'{bad[0]!r}'
+        raise ParamFileError(
+            f'{stored}: not a node name rcl accepts: {what} (names: letters, digits and "_", not '
+            'starting with a digit; "*" for one name and "**" for any number, each alone '
+            'between "/")'
+        )
+
+
+def _flat(section: str, parameters: dict, prefix: str) -> dict[str, Any]:
+    """The parameters with nested names dotted (``a: {b: 1}`` is ``a.b``), each checked."""
+    out: dict[str, Any] = {}
+    for key, value in parameters.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, dict):
+            out.update(_flat(section, value, f'{name}.'))
+            continue
+        if value is None:
+            raise ParamFileError(f'{section}: parameter {name} has no value (rcl refuses it)')
+        if isinstance(value, list):
+            kinds = {type(v) for v in value}
+            if len(kinds) > 1 or any(v is None or isinstance(v, (list, dict)) for v in value):
+                raise ParamFileError(
+                    f'{section}: parameter {name}: an array mixing types or '
+                    f'holding nested values, {value!r} (rcl refuses it)'
+                )
+        out[name] = value
+    return out
 
 
 def fully_qualified(node: str) -> str:
@@ -63,7 +244,8 @@ def applies(section: str, node: str) -> bool:
 
 def parameters_for(mapping: dict, node: str) -> tuple[dict[str, Any], list[str]]:
     """The parameters the node ``node`` (fully qualified) takes from a parameter file's
-    ``mapping``, and the names of all its sections (those that apply and those that do not)."""
+    ``mapping`` (from :func:`load`), and the names of all its sections (those that apply and
+    those that do not). Raises :class:`ParamFileError` for a section rcl refuses."""
     values: dict[str, Any] = {}
     sections = node_sections(mapping)
     for name, parameters in sections:

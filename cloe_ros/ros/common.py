@@ -38,7 +38,7 @@ from rclpy.qos import (
 from rclpy.task import Future
 
 from cloe_ros.interrupts import uninterrupted
-from cloe_ros.io.param_sections import applies
+from cloe_ros.io.param_sections import ParamFileError, applies, load, node_sections
 from cloe_ros.ros.errors import ParameterError, StartupError
 from cloe_ros.threads import limit_blas_threads
 
@@ -192,7 +192,7 @@ def check_params_files(argv: Sequence[str]) -> dict[str, list[str]]:
         except OSError as err:
             raise StartupError(f'parameter file {name}: {err.strerror or err}') from err
         try:
-            content = yaml.safe_load(text)
+            content = load(text)  # (as rcl reads it: cloe_ros.io.param_sections)
         except yaml.YAMLError as err:
             where = getattr(err, 'problem_mark', None)
             at = f' at line {where.line + 1}, column {where.column + 1}' if where else ''
@@ -205,7 +205,11 @@ def check_params_files(argv: Sequence[str]) -> dict[str, list[str]]:
                 f'parameter file {name}: expected a mapping of node names to ros__parameters '
                 f'(as in config/*.yaml), found {type(content).__name__} {_short(content)}'
             )
-        _check_node_mapping(name, content, '', sections[name])
+        _check_node_mapping(name, content, '')
+        try:
+            sections[name] = [section for section, _ in node_sections(content)]
+        except ParamFileError as err:
+            raise StartupError(f'parameter file {name}: {err}') from err
     return sections
 
 
@@ -228,10 +232,9 @@ def params_files_for_others(sections: dict[str, list[str]], node: str) -> list[s
     return warnings
 
 
-def _check_node_mapping(name: str, mapping: dict, where: str, sections: list[str]) -> None:
+def _check_node_mapping(name: str, mapping: dict, where: str) -> None:
     """rcl's layout: ``<node>: ros__parameters: {...}``, node names possibly nested under
-    namespaces; any other value above ``ros__parameters`` is an error. The node names found are
-    appended to ``sections``, absolute (``/fleet/cloe_shard1``)."""
+    namespaces; any other value above ``ros__parameters`` is an error."""
     for key, value in mapping.items():
         here = f'{where}/{key}' if where else str(key)
         if key == 'ros__parameters':
@@ -245,9 +248,8 @@ def _check_node_mapping(name: str, mapping: dict, where: str, sections: list[str
                     f'parameter file {name}: {here} must be a mapping of parameter names to '
                     f'values, found {_short(value)}'
                 )
-            sections.append('/' + where.strip('/'))
         elif isinstance(value, dict):
-            _check_node_mapping(name, value, here, sections)
+            _check_node_mapping(name, value, here)
         else:
             raise StartupError(
                 f'parameter file {name}: {here} is a value outside any ros__parameters '

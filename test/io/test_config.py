@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import array
+import math
 
 import numpy as np
 import pytest
 
 from cloe_ros.core.estimator import SM_GAINS_TABLE1
+from cloe_ros.io import param_sections
 from cloe_ros.io.config import (
     DEFAULTS,
     RANGES,
@@ -231,3 +233,73 @@ def test_a_command_takes_the_files_settings_but_its_vehicles_and_its_own_overrid
     assert command_settings(None, rate=200.0) == {'rate': 200.0}
     with pytest.raises(SettingsError, match='rate'):
         command_settings(None, rate=0.0)
+
+
+#: Plain YAML values and how rcl types them, as a node given them in a parameter file (rclpy 7.1)
+#: reported them: bool words, C's strtoll (hexadecimal, octal), strtod (exponents without a dot,
+#: words, hexadecimal floats; out of range stays text), else text.
+RCL_SCALARS = [
+    ('5e1', 50.0), ('1.0e3', 1000.0), ('1e-3', 0.001), ('1_0.0', '1_0.0'), ('0x10', 16),
+    ('010', 8), ('08', 8.0), ('1.', 1.0), ('.5', 0.5), ('+3', 3), ('+3.0', 3.0),
+    ('-.inf', -math.inf), ('infinity', math.inf), ('yes', True), ('on', True), ('y', True),
+    ('n', False), ('off', False), ('null', 'null'), ('~', '~'), ('1e400', '1e400'),
+    ('1e-310', '1e-310'), ('99999999999999999999', 1e20), ('0x1p3', 8.0), ('1.5f', '1.5f'),
+    ('0b11', '0b11'), ('2001-12-14', '2001-12-14'), ('9223372036854775807', 2**63 - 1),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(('text', 'expected'), RCL_SCALARS)
+def test_a_value_is_typed_as_rcl_types_it(text, expected):
+    """``cloe infer --config`` reads a value as the node does (before: PyYAML's YAML 1.1 rules,
+    so that ``rate: 5e1`` or ``l_max: 1.0e3``, numbers to the node, were strings to
+    ``cloe infer``, refused as 'must be a number', and ``1_0.0`` a number)."""
+    value = param_sections.scalar(text)
+    assert value == expected and type(value) is type(expected)
+    quoted = param_sections.load(f'p: "{text}"\nq: !!str {text}\n')
+    assert quoted == {'p': text, 'q': text}
+
+
+def test_a_file_in_scientific_notation_is_read(tmp_path):
+    path = tmp_path / 'params.yaml'
+    path.write_text('cloe_inference:\n  ros__parameters:\n    rate: 5e1\n    l_max: 1.0e3\n')
+    assert load_settings(path) == {'rate': 50.0, 'l_max': 1000.0}
+
+
+def test_sections_rcl_stores_as_one_are_one_at_the_first_place(tmp_path):
+    """Keys are names as written (``on`` is a node, not True); a key written twice, and two
+    spellings rcl stores alike (``fleet: cloe_shard1:`` and ``fleet/cloe_shard1:``), are one
+    section at the first one's place, so a ``/**`` between them wins (rclpy gives the node rate
+    20 and prediction_rate 2: before, 30 and 2, and a repeated key lost the first's values)."""
+    path = tmp_path / 'params.yaml'
+    path.write_text('fleet:\n  cloe_shard1:\n    ros__parameters: {rate: 10.0}\n'
+                    '/**:\n  ros__parameters: {rate: 20.0}\n'
+                    'fleet/cloe_shard1:\n  ros__parameters: {rate: 30.0, prediction_rate: 2.0}\n'
+                    'on:\n  ros__parameters: {rate: 40.0}\n'
+                    'on:\n  ros__parameters: {prediction_rate: 4.0}\n')  # fmt: skip
+    assert load_settings(path, '/fleet/cloe_shard1') == {'rate': 20.0, 'prediction_rate': 2.0}
+    assert load_settings(path, 'on') == {'rate': 40.0, 'prediction_rate': 4.0}
+    assert load_settings(path, 'True') == {'rate': 20.0}
+
+
+@pytest.mark.parametrize(
+    ('text', 'reason'),
+    [
+        ('a: &x {ros__parameters: {rate: 5.0}}\nb: *x\n', 'rcl does not support aliasing'),
+        ('cloe_inference:\n  ros__parameters:\n', 'ros__parameters has no value'),
+        ('cloe_inference:\n  ros__parameters:\n    rate:\n', 'parameter rate has no value'),
+        ('cloe_inference:\n  ros__parameters:\n    vehicles: [1.0, 2]\n', 'an array mixing types'),
+        ('/fleet/cloe_*:\n  ros__parameters: {rate: 5.0}\n', "accepts: 'cloe_*'"),
+        ('cloe-x:\n  ros__parameters: {rate: 5.0}\n', "not a node name rcl accepts: 'cloe-x'"),
+        ('1abc:\n  ros__parameters: {rate: 5.0}\n', "not a node name rcl accepts: '1abc'"),
+        ('fleet/cloe_inference/:\n  ros__parameters: {rate: 5.0}\n', 'an empty name'),
+        ('fleet:\n  /cloe_inference:\n    ros__parameters: {rate: 5.0}\n', 'starts with "/"'),
+    ],
+)  # fmt: skip
+def test_what_rcl_refuses_is_refused_saying_why(tmp_path, text, reason):
+    """A file the node cannot start with (rcl refuses it) is an error for ``cloe infer`` too,
+    naming the file and the problem (before: read as if it were fine)."""
+    path = tmp_path / 'params.yaml'
+    path.write_text(text)
+    with pytest.raises(SettingsError) as info:
+        load_settings(path)
+    assert str(info.value).startswith(f'{path}') and reason in str(info.value), info.value

@@ -112,6 +112,7 @@ def test_a_parameter_file_for_other_node_names_only_is_warned_of(tmp_path, monke
         ('/fleet/*:\n  ros__parameters: {rate: 50}\n', '/fleet/cloe_shard1', True),
         ('/**/cloe_shard1:\n  ros__parameters: {rate: 50}\n', '/cloe_shard1', True),
         ('/other/cloe_shard1:\n  ros__parameters: {rate: 50}\n', '/fleet/cloe_shard1', False),
+        ('fleet/:\n  cloe_shard1:\n    ros__parameters: {rate: 50}\n', '/fleet/cloe_shard1', True),
         ('', '/cloe_shard1', True),  # (an empty file sets nothing: nothing to say)
     ):
         path.write_text(text)

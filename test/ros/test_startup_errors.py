@@ -27,6 +27,10 @@ MALFORMED = {
         'cloe_inference/ros__parameters must be a mapping',
     ),
     'no-node': ('ros__parameters:\n  rate: 5\n', 'ros__parameters must be under a node name'),
+    # (what rcl refuses with its own words, said before it: cloe_ros.io.param_sections)
+    'bad-name': ('cloe-x:\n  ros__parameters: {rate: 5.0}\n', "rcl accepts: 'cloe-x'"),
+    'params-null': ('cloe_inference:\n  ros__parameters:\n', 'ros__parameters has no value'),
+    'alias': ('a: &x {ros__parameters: {rate: 5.0}}\nb: *x\n', 'rcl does not support aliasing'),
 }
 
 

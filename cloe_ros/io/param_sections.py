@@ -10,8 +10,8 @@ A parameter file maps node names to ``ros__parameters``::
     /**/cloe_shard2:          # a node named cloe_shard2, in any namespace
       ros__parameters: {shard_index: 2}
 
-A section's name is its keys joined by ``/`` with a leading ``/`` (``cloe_inference`` and
-``/cloe_inference`` are the same section). It is a pattern of a node's fully qualified name in
+A section's name is its keys joined by ``/`` with a leading ``/`` (``cloe_inference:`` and
+``/cloe_inference:`` name the same node). It is a pattern of a node's fully qualified name in
 which ``/*`` stands for one name and ``/**`` for any number of them, none included: rclcpp's
 rule (``parameter_map_from``, ``/*`` becoming ``(/\w+)``), which rclpy follows. A node takes
 every section that matches it, in the file's order, the later one's values winning: a ``/**``
@@ -19,17 +19,17 @@ written after a node's own section overrides it. Two spellings of one name rcl s
 (``fleet: cloe_shard1:`` and ``fleet/cloe_shard1:``; a key written twice) are one section, at
 the place of the first. (Measured with rclpy 7.1, Jazzy.)
 
-The file is read as rcl reads it (:func:`load`): keys are strings as written (``on:`` is the
-node ``on``); a plain value is a bool (``true``, ``yes``, ``on``, ``y``, ... and their
-negations), else an integer (C's ``strtoll``: ``0x10`` is 16, ``010`` is 8), else a float
-(``strtod``: ``5e1``, ``1.0e3``, ``.inf``, ``nan``; one out of range stays a string), else a
-string, and a quoted or ``!!str`` value is a string; a repeated key merges into the first;
-nested parameter names are dotted (``a: {b: 1}`` is ``a.b``). What rcl refuses is refused with
-a :class:`ParamFileError` saying why: aliases, a parameter or ``ros__parameters`` without a
-value, an array of mixed types, a section name that is not a node name (``cloe-x``,
-``/fleet/cloe_*``, ``1abc``, a ``//``).
+The file is read as rcl reads it (:func:`load`): keys are strings as written (``on:`` is the node
+``on``); a plain value is a bool (``true``, ``yes``, ``on``, ``y``, ... and their negations), else
+an integer (C's ``strtoll``: ``0x10`` is 16, ``010`` is 8), else a float (``strtod``: ``5e1``,
+``1.0e3``, ``.inf``, ``nan``; one out of range stays a string), else a string, and a quoted or
+``!!str`` value is a string; a repeated key merges into the first; nested parameter names are
+dotted (``a: {b: 1}`` is ``a.b``). What rcl refuses is refused, saying why (aliases: a
+:class:`yaml.YAMLError` with its line; the rest: a :class:`ParamFileError`): a parameter or
+``ros__parameters`` without a value, an array of mixed types, a section name that is not a node
+name (``cloe-x``, ``/fleet/cloe_*``, ``1abc``, a ``//``).
 
-The inference node warns at start-up of a file none of whose sections it takes
+Every node of the package warns at start-up of a file none of whose sections it takes
 (:func:`cloe_ros.ros.common.params_files_for_others`), and ``cloe infer --config FILE --node
 NAME`` reads a file as the node ``NAME`` takes it (:func:`cloe_ros.io.config.load_settings`).
 No rclpy here.

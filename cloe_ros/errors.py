@@ -23,7 +23,9 @@ parameters. Each class is also importable from the modules that raise it
 ``cloe_ros.io.recover.RecoverError``, ``cloe_ros.io.messages.MessageError``,
 ``cloe_ros.io.outputs.OutputConfigError``, ``cloe_ros.ros.common.ParameterError``). The MCAP
 record parser's ``RecordError`` and the reader's ``_Damage`` are internal: the reader and
-recovery translate them into a ``BagError`` / ``RecoverError`` naming the file.
+recovery translate them into a ``BagError`` / ``RecoverError`` naming the file; so is
+``cloe_ros.io.param_sections.ParamFileError``, which ``cloe infer --config`` and a node's
+start-up translate into a ``ConfigError`` / ``StartupError`` naming the parameter file.
 """
 
 from __future__ import annotations

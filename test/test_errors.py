@@ -33,8 +33,9 @@ def test_every_error_is_a_cloe_error():
 
 
 #: Error classes that never reach a user: the reader and recovery translate them into a BagError
-#: or RecoverError naming the file.
-INTERNAL_ERRORS = {'RecordError', '_Damage'}
+#: or RecoverError naming the file, the settings and a node's start-up a parameter file's into a
+#: ConfigError or StartupError naming it.
+INTERNAL_ERRORS = {'RecordError', '_Damage', 'ParamFileError'}
 
 
 def test_every_error_class_of_the_package_is_in_the_tree_and_exported_by_cloe_ros():

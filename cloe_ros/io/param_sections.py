@@ -48,7 +48,9 @@ PARAMETERS = 'ros__parameters'
 
 
 class ParamFileError(ValueError):
-    """A parameter file rcl refuses (or reads otherwise than its text suggests), in words."""
+    """A parameter file rcl refuses, in words. Internal: its users say it as a
+    :class:`~cloe_ros.errors.ConfigError` (``cloe infer --config``) or a
+    :class:`~cloe_ros.ros.errors.StartupError` (a node's ``--params-file``) naming the file."""
 
 
 _TRUE = frozenset('y Y yes Yes YES true True TRUE on On ON'.split())

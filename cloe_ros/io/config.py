@@ -33,6 +33,7 @@ from cloe_ros.io.outputs import OutputConfig, OutputConfigError
 from cloe_ros.io.param_sections import (
     ParamFileError,
     applies,
+    check_layout,
     fully_qualified,
     load,
     parameters_for,
@@ -159,6 +160,7 @@ def _node_parameters(data: dict[str, Any], node_name: str, path: Path) -> dict[s
     values, sections = parameters_for(data, node)
     if not sections:
         return data
+    check_layout(data)  # (a node's file: nothing outside its sections, as the node checks it)
     if not any(applies(name, node) for name in sections):
         msg = (f'{path} has parameters for {", ".join(sections)}, not for {node} nor /**: '
                'name the node to read with --node NAME')  # fmt: skip

@@ -19,15 +19,20 @@ written after a node's own section overrides it. Two spellings of one name rcl s
 (``fleet: cloe_shard1:`` and ``fleet/cloe_shard1:``; a key written twice) are one section, at
 the place of the first. (Measured with rclpy 7.1, Jazzy.)
 
-The file is read as rcl reads it (:func:`load`): keys are strings as written (``on:`` is the node
-``on``); a plain value is a bool (``true``, ``yes``, ``on``, ``y``, ... and their negations), else
-an integer (C's ``strtoll``: ``0x10`` is 16, ``010`` is 8), else a float (``strtod``: ``5e1``,
-``1.0e3``, ``.inf``, ``nan``; one out of range stays a string), else a string, and a quoted or
-``!!str`` value is a string; a repeated key merges into the first; nested parameter names are
-dotted (``a: {b: 1}`` is ``a.b``). What rcl refuses is refused, saying why (aliases: a
-:class:`yaml.YAMLError` with its line; the rest: a :class:`ParamFileError`): a parameter or
-``ros__parameters`` without a value, an array of mixed types, a section name that is not a node
-name (``cloe-x``, ``/fleet/cloe_*``, ``1abc``, a ``//``).
+The file is read as rcl reads it (:func:`load`), by libyaml's parser where PyYAML has it, as rcl's
+(a tab between a value and its comment, for one): keys are strings as written (``on:`` is the node
+``on``, ``<<`` a name); a value that is not quoted (plain, or a block scalar) is a bool (``true``,
+``yes``, ``on``, ``y``, ... and their negations), else an integer (C's ``strtoll``: ``0x10`` is 16,
+``010`` is 8), else a float (``strtod``: ``5e1``, ``1.0e3``, ``.inf``, ``nan``, ``nan(1)``; one out
+of range stays a string), else a string; a quoted or ``!!str`` value is a string, and other tags
+are ignored (``!!float 5`` is the integer 5); several documents, and a repeated key, merge into the
+first; nested parameter names are dotted (``a: {b: 1}`` is ``a.b``). What rcl refuses is refused,
+saying why (aliases: a :class:`yaml.YAMLError` with its line; the rest: a :class:`ParamFileError`):
+a parameter or ``ros__parameters`` without a value or a parameter without a name, an array of mixed
+types, a value outside ``ros__parameters`` (:func:`check_layout`), a section name that is not a
+node name (``cloe-x``, ``/fleet/cloe_*``, ``1abc``, a ``//``). (Not followed: the few layouts rcl
+reads in its own odd way, such as an array of mappings, or a section holding both
+``ros__parameters`` and a child node.)
 
 Every node of the package warns at start-up of a file none of whose sections it takes
 (:func:`cloe_ros.ros.common.params_files_for_others`), and ``cloe infer --config FILE --node
@@ -58,7 +63,7 @@ _FALSE = frozenset('n N no No NO false False FALSE off Off OFF'.split())
 _INT = re.compile(r'[+-]?(?:0[xX][0-9a-fA-F]+|0[0-7]*|[1-9][0-9]*)')
 _DECIMAL = re.compile(r'[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?')
 _HEX = re.compile(r'[+-]?0[xX](?:[0-9a-fA-F]+\.?[0-9a-fA-F]*|\.[0-9a-fA-F]+)(?:[pP][+-]?[0-9]+)?')
-_WORD = re.compile(r'[+-]?(?:inf|infinity|nan)', re.IGNORECASE)
+_WORD = re.compile(r'[+-]?(?:inf|infinity|nan(?:\([0-9A-Za-z_]*\))?)', re.IGNORECASE)
 _YAML_SPECIAL = re.compile(r'[+-]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)')
 _PLAIN = 'tag:cloe_ros,2026:rcl-plain'
 _TOKEN = re.compile(r'\*\*?|[A-Za-z_][A-Za-z0-9_]*')
@@ -79,7 +84,7 @@ def scalar(text: str) -> bool | int | float | str:
     if _YAML_SPECIAL.fullmatch(text):
         return float(text.replace('.', '', 1))
     if _WORD.fullmatch(text):
-        return float(text)
+        return math.nan if text.lstrip('+-')[:3].lower() == 'nan' else float(text)
     hexadecimal = _HEX.fullmatch(text) is not None
     if hexadecimal or _DECIMAL.fullmatch(text):
         value = float.fromhex(text) if hexadecimal else float(text)
@@ -92,19 +97,24 @@ def scalar(text: str) -> bool | int | float | str:
     return text
 
 
-class _Loader(yaml.SafeLoader):
-    """PyYAML as rcl's parser reads a parameter file (see the module docstring)."""
+_Base = yaml.CSafeLoader if yaml.__with_libyaml__ else yaml.SafeLoader
+
+
+class _Loader(_Base):
+    """PyYAML as rcl's parser reads a parameter file (see the module docstring): libyaml's
+    parser where PyYAML has it, as rcl's (tabs between values, for one); tags ignored but
+    ``!!str``; aliases refused."""
 
     # (every plain scalar gets _PLAIN: typed by scalar())
     yaml_implicit_resolvers: ClassVar[dict] = {}
 
-    def compose_node(self, parent, index):
-        if self.check_event(yaml.AliasEvent):
-            mark = self.peek_event().start_mark
-            raise yaml.composer.ComposerError(
-                None, None, 'an alias (*name): rcl does not support aliasing', mark
+    def construct_object(self, node, deep=False):
+        if node in self.constructed_objects or node in self.recursive_objects:
+            # (a node met twice: an alias of an anchor, *name)
+            raise yaml.constructor.ConstructorError(
+                None, None, 'an alias (*name): rcl does not support aliasing', node.start_mark
             )
-        return super().compose_node(parent, index)
+        return super().construct_object(node, deep=deep)
 
     def construct_mapping(self, node, deep=False):
         if not isinstance(node, yaml.MappingNode):
@@ -117,12 +127,7 @@ class _Loader(yaml.SafeLoader):
                 raise yaml.constructor.ConstructorError(
                     None, None, 'a key that is not a name', key_node.start_mark
                 )
-            key = key_node.value  # (as written: rcl's keys are strings)
-            if key == '<<' and key_node.style is None:
-                raise yaml.constructor.ConstructorError(
-                    None, None, 'a merge key (<<): rcl does not support aliasing',
-                    key_node.start_mark,
-                )  # fmt: skip
+            key = key_node.value  # (as written: rcl's keys are strings; '<<' is one too)
             value = self.construct_object(value_node, deep=True)
             if isinstance(mapping.get(key), dict) and isinstance(value, dict):
                 mapping[key] = _merged(mapping[key], value)  # (a repeated key, merged as rcl)
@@ -131,20 +136,34 @@ class _Loader(yaml.SafeLoader):
         return mapping
 
 
-_Loader.add_implicit_resolver(_PLAIN, re.compile(r'.*', re.DOTALL), None)
-
-
-def _plain(loader: _Loader, node: yaml.ScalarNode):
-    """A scalar as rcl types it: by :func:`scalar` when plain, whatever its tag but ``!!str``
-    (``!!float 5`` is the integer 5); a quoted one is a string; an empty one has no value."""
-    if node.style is not None:
+def _typed(loader: _Loader, node: yaml.Node):
+    """A node as rcl reads it whatever its tag: a scalar by :func:`scalar` unless quoted (a
+    block scalar too: ``|-`` then ``5`` is 5; ``|`` keeps its newline, so stays text); an
+    empty one has no value (None)."""
+    if isinstance(node, yaml.SequenceNode):
+        return loader.construct_sequence(node, deep=True)
+    if isinstance(node, yaml.MappingNode):
+        return loader.construct_mapping(node, deep=True)
+    if node.style in ('"', "'"):
         return node.value
     return scalar(node.value) if node.value else None
 
 
-_Loader.add_constructor(_PLAIN, _plain)
-for _tag in ('null', 'bool', 'int', 'float', 'timestamp', 'binary'):
-    _Loader.add_constructor(f'tag:yaml.org,2002:{_tag}', _plain)
+def _text(loader: _Loader, node: yaml.Node):
+    """``!!str`` and the text a quoted or block scalar resolves to: a string, but a block
+    scalar is typed as rcl types it (:func:`_typed`)."""
+    if isinstance(node, yaml.ScalarNode) and node.style in ('|', '>'):
+        return _typed(loader, node)
+    return loader.construct_scalar(node)
+
+
+_Loader.add_implicit_resolver(_PLAIN, re.compile(r'.*', re.DOTALL), None)
+_Loader.add_constructor(_PLAIN, _typed)
+_Loader.add_constructor('tag:yaml.org,2002:str', _text)
+for _tag in ('null', 'bool', 'int', 'float', 'timestamp', 'binary', 'omap', 'pairs'):
+    _Loader.add_constructor(f'tag:yaml.org,2002:{_tag}', _typed)
+_Loader.add_constructor('tag:yaml.org,2002:set', _typed)  # (a mapping of empty values)
+_Loader.add_constructor(None, _typed)  # (any other tag: ignored, as rcl ignores it)
 
 
 def _merged(first: dict, then: dict) -> dict:
@@ -156,10 +175,42 @@ def _merged(first: dict, then: dict) -> dict:
 
 
 def load(text: str) -> Any:
-    """A parameter file's text as rcl reads it (None for an empty file). Raises
-    :class:`yaml.YAMLError` (with its line) for what is not YAML or what rcl refuses in it
-    (aliases)."""
-    return yaml.load(text, Loader=_Loader)  # (a safe loader: yaml.SafeLoader's)
+    """A parameter file's text as rcl reads it (None for an empty file; several documents are
+    merged, in order). Raises :class:`yaml.YAMLError` (with its line) for what is not YAML or
+    what rcl refuses in it (aliases)."""
+    documents = [d for d in yaml.load_all(text, Loader=_Loader) if d is not None]  # (safe)
+    if not all(isinstance(d, dict) for d in documents):  # (the callers refuse it, saying what)
+        return next(d for d in documents if not isinstance(d, dict))
+    merged = None
+    for document in documents:
+        merged = document if merged is None else _merged(merged, document)
+    return merged
+
+
+def check_layout(mapping: dict, where: str = '') -> None:
+    """rcl's layout: ``<node>: ros__parameters: {...}``, node names possibly nested under
+    namespaces; a value above ``ros__parameters`` is an error (:class:`ParamFileError`, in
+    words)."""
+    for key, value in mapping.items():
+        here = f'{where}/{key}' if where else str(key)
+        if key == PARAMETERS:
+            if not where:
+                raise ParamFileError('ros__parameters must be under a node name (<node>: '
+                                     'ros__parameters: ..., or /**: for every node)')  # fmt: skip
+            if value is not None and not isinstance(value, dict):
+                raise ParamFileError(f'{here} must be a mapping of parameter names to values, '
+                                     f'found {brief(value)}')  # fmt: skip
+        elif isinstance(value, dict):
+            check_layout(value, here)
+        else:
+            raise ParamFileError(f'{here} is a value outside any ros__parameters (expected '
+                                 f'<node>: ros__parameters: {{{key}: ...}})')  # fmt: skip
+
+
+def brief(value, width: int = 40) -> str:
+    """``repr(value)``, cut to ``width`` characters."""
+    text = repr(value)
+    return text if len(text) <= width else text[: width - 3] + '...'
 
 
 def node_sections(mapping: dict) -> list[tuple[str, dict[str, Any]]]:
@@ -218,15 +269,18 @@ def _flat(section: str, parameters: dict, prefix: str) -> dict[str, Any]:
         if isinstance(value, dict):
             out.update(_flat(section, value, f'{name}.'))
             continue
+        if not key:
+            raise ParamFileError(f'{section}: a parameter without a name (rcl refuses it)')
         if value is None:
             raise ParamFileError(f'{section}: parameter {name} has no value (rcl refuses it)')
         if isinstance(value, list):
-            kinds = {type(v) for v in value}
-            if len(kinds) > 1 or any(v is None or isinstance(v, (list, dict)) for v in value):
-                raise ParamFileError(
-                    f'{section}: parameter {name}: an array mixing types or '
-                    f'holding nested values, {value!r} (rcl refuses it)'
-                )
+            if any(v is None or isinstance(v, (list, dict)) for v in value):
+                raise ParamFileError(f'{section}: parameter {name}: an array holding mappings, '
+                                     f'arrays or empty values, {brief(value)}: not a parameter '
+                                     'value')  # fmt: skip
+            if len({type(v) for v in value}) > 1:
+                raise ParamFileError(f'{section}: parameter {name}: an array mixing types, '
+                                     f'{brief(value)} (rcl refuses it)')  # fmt: skip
         out[name] = value
     return out
 

@@ -38,7 +38,14 @@ from rclpy.qos import (
 from rclpy.task import Future
 
 from cloe_ros.interrupts import uninterrupted
-from cloe_ros.io.param_sections import ParamFileError, applies, load, node_sections
+from cloe_ros.io.param_sections import (
+    ParamFileError,
+    applies,
+    brief,
+    check_layout,
+    load,
+    node_sections,
+)
 from cloe_ros.ros.errors import ParameterError, StartupError
 from cloe_ros.threads import limit_blas_threads
 
@@ -203,10 +210,10 @@ def check_params_files(argv: Sequence[str]) -> dict[str, list[str]]:
         if not isinstance(content, dict):
             raise StartupError(
                 f'parameter file {name}: expected a mapping of node names to ros__parameters '
-                f'(as in config/*.yaml), found {type(content).__name__} {_short(content)}'
+                f'(as in config/*.yaml), found {type(content).__name__} {brief(content)}'
             )
-        _check_node_mapping(name, content, '')
         try:
+            check_layout(content)
             sections[name] = [section for section, _ in node_sections(content)]
         except ParamFileError as err:
             raise StartupError(f'parameter file {name}: {err}') from err
@@ -230,36 +237,6 @@ def params_files_for_others(sections: dict[str, list[str]], node: str) -> list[s
                 'start the node under the name the file gives)'
             )
     return warnings
-
-
-def _check_node_mapping(name: str, mapping: dict, where: str) -> None:
-    """rcl's layout: ``<node>: ros__parameters: {...}``, node names possibly nested under
-    namespaces; any other value above ``ros__parameters`` is an error."""
-    for key, value in mapping.items():
-        here = f'{where}/{key}' if where else str(key)
-        if key == 'ros__parameters':
-            if not where:
-                raise StartupError(
-                    f'parameter file {name}: ros__parameters must be under a node name '
-                    '(<node>: ros__parameters: ..., or /**: for every node)'
-                )
-            if value is not None and not isinstance(value, dict):
-                raise StartupError(
-                    f'parameter file {name}: {here} must be a mapping of parameter names to '
-                    f'values, found {_short(value)}'
-                )
-        elif isinstance(value, dict):
-            _check_node_mapping(name, value, here)
-        else:
-            raise StartupError(
-                f'parameter file {name}: {here} is a value outside any ros__parameters '
-                f'(expected <node>: ros__parameters: {{{key}: ...}})'
-            )
-
-
-def _short(value, width: int = 40) -> str:
-    text = repr(value)
-    return text if len(text) <= width else text[: width - 3] + '...'
 
 
 def _init_quietly(argv: list[str]) -> None:

@@ -303,3 +303,51 @@ def test_what_rcl_refuses_is_refused_saying_why(tmp_path, text, reason):
     with pytest.raises(SettingsError) as info:
         load_settings(path)
     assert str(info.value).startswith(f'{path}') and reason in str(info.value), info.value
+
+
+#: A file rcl reads in its own way, and the parameters a node /ns/n got from it (rclpy 7.1):
+#: a tab between a value and its comment (libyaml's parser, as rcl's), documents merged, tags
+#: ignored but !!str, block scalars typed like plain ones (``|`` keeps its newline), strtod's
+#: nan(...), ``<<`` an ordinary name.
+RCL_READING = """\
+/ns/n:
+  ros__parameters:
+    a: 1\t# a tab before the comment
+    s: a\tb
+    t: !foo 5
+    u: !!python/str 5
+    v: |-
+      5
+    w: >-
+      true
+    x: |
+      5
+    y: nan(1)
+    <<: {z: 1}
+---
+/ns/n:
+  ros__parameters: {b: 2}
+"""
+
+
+def test_a_file_is_read_as_rcl_reads_it():
+    """(before: refused for the tab, the second document and the unknown tags; the block
+    scalars were strings, nan(1) a string, ``<<`` a merge key)"""
+    got = param_sections.parameters_for(param_sections.load(RCL_READING), '/ns/n')[0]
+    y = got.pop('y')
+    assert math.isnan(y)
+    assert got == {'a': 1, 's': 'a\tb', 't': 5, 'u': 5, 'v': 5, 'w': True, 'x': '5\n',
+                   '<<.z': 1, 'b': 2}  # fmt: skip
+
+
+def test_a_value_outside_the_sections_is_refused_as_the_node_refuses_it(tmp_path):
+    """``cloe infer --config`` checks a node file's layout as the node's start-up does (before:
+    a value beside ros__parameters was ignored by the one and refused by the other)."""
+    path = tmp_path / 'params.yaml'
+    path.write_text('cloe_inference:\n  rate: 5.0\n  ros__parameters: {rate: 50.0}\n')
+    with pytest.raises(SettingsError) as info:
+        load_settings(path)
+    assert str(info.value) == (
+        f'{path}: cloe_inference/rate is a value outside any ros__parameters (expected <node>: '
+        'ros__parameters: {rate: ...})'
+    )

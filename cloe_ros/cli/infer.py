@@ -65,6 +65,11 @@ class InferResult:
 
 def check_inputs(topics: dict[str, str], path: Path) -> list[str]:
     """Vehicle namespaces with usable odom/reference pairs; a clear error otherwise."""
+    return _usable(topics, path)[0]
+
+
+def _usable(topics: dict[str, str], path: Path) -> tuple[list[str], list[str]]:
+    """:func:`survey_inputs` of ``topics``, and a clear error when no vehicle is usable."""
     vehicles, problems = survey_inputs(topics)
     if not vehicles:
         found = ', '.join(f'{n} ({t})' for n, t in sorted(topics.items())) or 'no topics'
@@ -74,7 +79,7 @@ def check_inputs(topics: dict[str, str], path: Path) -> list[str]:
             f'<ns>/reference (geometry_msgs/msg/PoseStamped); {detail}'
         )
         raise CliError(msg)
-    return vehicles
+    return vehicles, problems
 
 
 def survey_inputs(topics: dict[str, str]) -> tuple[list[str], list[str]]:
@@ -120,10 +125,7 @@ def infer_bag(
     engine_config, output_config = build_configs(settings)
     start = time.monotonic()
     with BagReader(bag) as reader:
-        found = _vehicles(reader, bag, vehicles)
-        # (with no --vehicles, every namespace was meant: say which cannot be inferred)
-        skipped = [] if vehicles else survey_inputs(
-            {name: info.msgtype for name, info in reader.topics.items()})[1]  # fmt: skip
+        found, skipped = _vehicles(reader, bag, vehicles)
         if output.exists():
             raise CliError(f'{output} exists already, not overwriting.')
         count = worker_count(jobs, len(found))
@@ -356,11 +358,14 @@ def _failed(err: BaseException, writer: BagWriter, output: Path) -> BaseExceptio
     return err
 
 
-def _vehicles(reader: BagReader, bag: Path, vehicles: list[str] | None) -> list[str]:
+def _vehicles(reader: BagReader, bag: Path, vehicles: list[str] | None):
     """The vehicles of the open ``reader`` to infer: ``vehicles`` (default: every one found),
-    each with messages on its odom and reference; a clear error otherwise."""
+    each with messages on its odom and reference; a clear error otherwise. Also, without
+    ``vehicles`` (every namespace was meant), the namespaces that cannot be inferred, in words
+    (:func:`survey_inputs`)."""
     topics = {name: info.msgtype for name, info in reader.topics.items()}
-    found = check_inputs(topics, bag)
+    found, problems = _usable(topics, bag)
+    skipped = [] if vehicles else problems
     if vehicles:
         wanted = [v.rstrip('/') for v in vehicles]
         twice = sorted({v or '/' for v in wanted if wanted.count(v) > 1})
@@ -384,7 +389,7 @@ def _vehicles(reader: BagReader, bag: Path, vehicles: list[str] | None) -> list[
             + (f' (select the other vehicles with --vehicles {" ".join(others)})'
                if others else '')
         )  # fmt: skip
-    return found
+    return found, skipped
 
 
 def _unusable(bag: Path, vehicle: str, engine: VehicleEngine, malformed: int, received) -> str:

@@ -32,7 +32,6 @@ from cloe_ros.core.prediction import PredictionConfig
 from cloe_ros.io.outputs import OutputConfig, OutputConfigError
 from cloe_ros.io.param_sections import (
     ParamFileError,
-    applies,
     check_layout,
     fully_qualified,
     load,
@@ -157,11 +156,11 @@ def _node_parameters(data: dict[str, Any], node_name: str, path: Path) -> dict[s
     mapping). A file none of whose sections applies (only other nodes') is refused, naming
     them: it was meant for another node name."""
     node = fully_qualified(node_name)
-    values, sections = parameters_for(data, node)
+    values, sections, taken = parameters_for(data, node)
     if not sections:
         return data
     check_layout(data)  # (a node's file: nothing outside its sections, as the node checks it)
-    if not any(applies(name, node) for name in sections):
+    if not taken:
         msg = (f'{path} has parameters for {", ".join(sections)}, not for {node} nor /**: '
                'name the node to read with --node NAME')  # fmt: skip
         raise SettingsError(msg)

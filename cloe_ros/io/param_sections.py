@@ -78,16 +78,21 @@ def scalar(text: str) -> bool | int | float | str:
     if _INT.fullmatch(text):
         digits = text.lstrip('+-')
         base = 16 if digits[:2] in ('0x', '0X') else 8 if digits[0] == '0' else 10
-        value = int(digits, base) * (-1 if text[0] == '-' else 1)
-        if -(2**63) <= value < 2**63:  # (else strtoll's ERANGE: strtod's turn)
-            return value
+        # (over 19 decimal digits is out of range, and Python refuses to parse thousands)
+        if base != 10 or len(digits) <= 19:
+            value = int(digits, base) * (-1 if text[0] == '-' else 1)
+            if -(2**63) <= value < 2**63:  # (else strtoll's ERANGE: strtod's turn)
+                return value
     if _YAML_SPECIAL.fullmatch(text):
         return float(text.replace('.', '', 1))
     if _WORD.fullmatch(text):
         return math.nan if text.lstrip('+-')[:3].lower() == 'nan' else float(text)
     hexadecimal = _HEX.fullmatch(text) is not None
     if hexadecimal or _DECIMAL.fullmatch(text):
-        value = float.fromhex(text) if hexadecimal else float(text)
+        try:
+            value = float.fromhex(text) if hexadecimal else float(text)
+        except OverflowError:  # (float.fromhex beyond the largest float: strtod's ERANGE)
+            return text
         mantissa = re.split('[pP]' if hexadecimal else '[eE]', text)[0]
         zero = not re.search('[1-9a-fA-F]' if hexadecimal else '[1-9]', mantissa.lstrip('+-0xX'))
         # strtod's ERANGE (rcl then keeps the text): overflow, underflow, a subnormal result
@@ -128,6 +133,11 @@ class _Loader(_Base):
                     None, None, 'a key that is not a name', key_node.start_mark
                 )
             key = key_node.value  # (as written: rcl's keys are strings; '<<' is one too)
+            if key == PARAMETERS and key in mapping:
+                raise yaml.constructor.ConstructorError(
+                    None, None, 'ros__parameters twice in one section (rcl refuses it)',
+                    key_node.start_mark,
+                )  # fmt: skip
             value = self.construct_object(value_node, deep=True)
             if isinstance(mapping.get(key), dict) and isinstance(value, dict):
                 mapping[key] = _merged(mapping[key], value)  # (a repeated key, merged as rcl)
@@ -266,11 +276,11 @@ def _flat(section: str, parameters: dict, prefix: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in parameters.items():
         name = f'{prefix}{key}'
+        if not key:
+            raise ParamFileError(f'{section}: a parameter without a name (rcl refuses it)')
         if isinstance(value, dict):
             out.update(_flat(section, value, f'{name}.'))
             continue
-        if not key:
-            raise ParamFileError(f'{section}: a parameter without a name (rcl refuses it)')
         if value is None:
             raise ParamFileError(f'{section}: parameter {name} has no value (rcl refuses it)')
         if isinstance(value, list):
@@ -298,13 +308,15 @@ def applies(section: str, node: str) -> bool:
     return re.fullmatch(pattern, node, re.ASCII) is not None
 
 
-def parameters_for(mapping: dict, node: str) -> tuple[dict[str, Any], list[str]]:
+def parameters_for(mapping: dict, node: str) -> tuple[dict[str, Any], list[str], list[str]]:
     """The parameters the node ``node`` (fully qualified) takes from a parameter file's
-    ``mapping`` (from :func:`load`), and the names of all its sections (those that apply and
-    those that do not). Raises :class:`ParamFileError` for a section rcl refuses."""
+    ``mapping`` (from :func:`load`), the names of all its sections, and of those that apply.
+    Raises :class:`ParamFileError` for a section rcl refuses."""
     values: dict[str, Any] = {}
     sections = node_sections(mapping)
+    taken = []
     for name, parameters in sections:
         if applies(name, node):
             values.update(parameters)
-    return values, [name for name, _ in sections]
+            taken.append(name)
+    return values, [name for name, _ in sections], taken

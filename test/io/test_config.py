@@ -148,8 +148,10 @@ cloe_shard2:
     ],
 )  # fmt: skip
 def test_a_node_reads_the_wildcard_section_then_its_own(tmp_path, text, node, expected):
-    """As ROS gives a node named ``node`` its parameters: ``/**`` first, then its own section
-    (with or without a leading ``/``), whose values win; other nodes' sections are ignored."""
+    """As ROS gives a node named ``node`` its parameters: here ``/**`` comes first in the file,
+    then its own section (with or without a leading ``/``), whose values win; other nodes'
+    sections are ignored. (A ``/**`` written last wins: test_a_node_takes_the_sections_rclpy_
+    gives_it.)"""
     path = tmp_path / 'params.yaml'
     path.write_text(text)
     assert load_settings(path, node) == expected
@@ -245,6 +247,7 @@ RCL_SCALARS = [
     ('n', False), ('off', False), ('null', 'null'), ('~', '~'), ('1e400', '1e400'),
     ('1e-310', '1e-310'), ('99999999999999999999', 1e20), ('0x1p3', 8.0), ('1.5f', '1.5f'),
     ('0b11', '0b11'), ('2001-12-14', '2001-12-14'), ('9223372036854775807', 2**63 - 1),
+    ('0x1p99999', '0x1p99999'), ('9' * 5000, '9' * 5000),  # (before: a traceback each)
 ]  # fmt: skip
 
 

@@ -170,9 +170,9 @@ def _text(loader: _Loader, node: yaml.Node):
 _Loader.add_implicit_resolver(_PLAIN, re.compile(r'.*', re.DOTALL), None)
 _Loader.add_constructor(_PLAIN, _typed)
 _Loader.add_constructor('tag:yaml.org,2002:str', _text)
-for _tag in ('null', 'bool', 'int', 'float', 'timestamp', 'binary', 'omap', 'pairs'):
+# (!!set is then a mapping of empty values, which a parameter cannot be)
+for _tag in ('null', 'bool', 'int', 'float', 'timestamp', 'binary', 'omap', 'pairs', 'set'):
     _Loader.add_constructor(f'tag:yaml.org,2002:{_tag}', _typed)
-_Loader.add_constructor('tag:yaml.org,2002:set', _typed)  # (a mapping of empty values)
 _Loader.add_constructor(None, _typed)  # (any other tag: ignored, as rcl ignores it)
 
 
@@ -228,8 +228,8 @@ def node_sections(mapping: dict) -> list[tuple[str, dict[str, Any]]]:
     order: ``(name, parameters)``, the name fully qualified (nested keys joined,
     ``/fleet/cloe_shard1``), the parameters' nested names dotted; two spellings rcl stores as
     one name merged at the first's place. Values above ``ros__parameters`` that are not
-    mappings are skipped (:func:`cloe_ros.ros.common.check_params_files` refuses them where the
-    node reads the file). Raises :class:`ParamFileError` for a section rcl refuses."""
+    mappings are skipped (:func:`check_layout` refuses them). Raises :class:`ParamFileError`
+    for a section rcl refuses."""
     merged: dict[str, dict[str, Any]] = {}
     for stored, parameters in _walk(mapping, None):
         merged.setdefault(stored, {}).update(parameters)

@@ -13,7 +13,7 @@ ROS_WHEELS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-nav-msgs ros-jazzy-geometry-
 	ros-jazzy-std-msgs ros-jazzy-std-srvs ros-jazzy-diagnostic-msgs ros-jazzy-rosgraph-msgs \
 	ros-jazzy-visualization-msgs
 SOURCES := setup.py setup.cfg package.xml $(shell find cloe_ros config resource launch viewers -type f \
-	-not -name '*.pyc' 2>/dev/null) $(shell find bags -type f 2>/dev/null)
+	-not -name '*.pyc' -not -name '_kernels_ahead_*' 2>/dev/null) $(shell find bags -type f 2>/dev/null)
 DEMO_ARGS ?=
 TEST_ARGS ?=
 # parallel test processes (pytest-xdist); each reserves a DDS domain of its own (test/conftest.py)
@@ -48,13 +48,16 @@ $(VENV)/.deps: requirements.txt | $(BIN)/python
 	$(BIN)/pip install $(ROS_WHEELS) -r requirements.txt
 	touch $@
 
-# (then the compiled kernels, cloe_ros/core/kernels.py, are compiled into numba's cache once, for
-# the installed package and for the work tree the tests import, so that no node or test process
-# started later waits on a compile)
+# (then the compiled kernels, cloe_ros/core/kernels.py, are built ahead into one extension module,
+# cloe_ros/core/ahead.py, for the installed package and for the work tree the tests import, which
+# also fills numba's cache: no node or test process started later waits on a compile, and none
+# imports numba. Where the build cannot be made (no C compiler), numba's cache alone serves.)
+KERNEL_IMPORTS := 'import cloe_ros.core.kernels, cloe_ros.core.kernels_covariance, cloe_ros.core.identifier, cloe_ros.core.anticipation'
 $(VENV)/.installed: $(VENV)/.deps $(SOURCES)
 	$(BIN)/pip install .
-	cd / && $(abspath $(BIN))/python -c 'import cloe_ros.core.kernels, cloe_ros.core.kernels_covariance, cloe_ros.core.identifier, cloe_ros.core.anticipation'
-	$(BIN)/python -c 'import cloe_ros.core.kernels, cloe_ros.core.kernels_covariance, cloe_ros.core.identifier, cloe_ros.core.anticipation'
+	cd / && ($(abspath $(BIN))/python -m cloe_ros.core.ahead \
+		|| CLOE_ROS_KERNELS=jit $(abspath $(BIN))/python -c $(KERNEL_IMPORTS))
+	$(BIN)/python -m cloe_ros.core.ahead || CLOE_ROS_KERNELS=jit $(BIN)/python -c $(KERNEL_IMPORTS)
 	touch $@
 
 lint: $(VENV)/.installed

@@ -18,11 +18,17 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-import pytest
-from ros_helpers import release_test_domains
+from cloe_ros.core import ahead
 
-from cloe_ros.cli.processes import reserve_domain_id
-from cloe_ros.threads import limit_blas_threads
+# numba's JIT in the suite's own processes, whose tests call the kernels' helpers (only the JIT
+# compiles a helper alone); the processes they start run the kernels built ahead, as users do
+ahead.select('jit')
+
+import pytest  # noqa: E402
+from ros_helpers import release_test_domains  # noqa: E402
+
+from cloe_ros.cli.processes import reserve_domain_id  # noqa: E402
+from cloe_ros.threads import limit_blas_threads  # noqa: E402
 
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 #: This process's domain: the xdist controller's, or one worker's (``PYTEST_XDIST_WORKER``).

@@ -73,12 +73,13 @@ def golden_outputs(bag: Path) -> dict[str, np.ndarray]:
     return summarise(estimates)
 
 
-def pinned_golden_outputs(bag: Path) -> dict[str, np.ndarray]:
+def pinned_golden_outputs(bag: Path, **env: str) -> dict[str, np.ndarray]:
     """:func:`golden_outputs` of ``bag``, computed in a child process with :data:`PINNED_KERNELS`
-    and the ``cloe_ros`` this process imports."""
+    (and ``env``) and the ``cloe_ros`` this process imports; ``kernels_ahead`` says whether it
+    ran the kernels built ahead (:mod:`cloe_ros.core.ahead`) or numba's JIT."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'outputs.npz'
-        run_golden_process(bag, out, check=True)
+        run_golden_process(bag, out, {**PINNED_KERNELS, **env}, check=True)
         with np.load(out) as saved:
             return dict(saved)
 
@@ -98,8 +99,10 @@ def run_golden_process(bag: Path | str, out: Path | str, kernels: dict[str, str]
 
 def run_pinned_script(code: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     """Run ``python -c code args...`` with :data:`PINNED_KERNELS` in its environment and this
-    checkout first on its path, from the checkout; its output captured as text."""
-    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO)}
+    checkout first on its path, from the checkout; its output captured as text. The scripts
+    call the kernels' helpers, which only numba's JIT compiles alone: they run the JIT
+    (``CLOE_ROS_KERNELS=jit``), as the suite's own processes do (test/conftest.py)."""
+    env = {**os.environ, **PINNED_KERNELS, 'PYTHONPATH': str(REPO), 'CLOE_ROS_KERNELS': 'jit'}
     return subprocess.run([sys.executable, '-c', code, *args], env=env, cwd=REPO,
                           capture_output=True, text=True, timeout=timeout)  # fmt: skip
 
@@ -178,4 +181,6 @@ def compare(golden: dict[str, np.ndarray], got: dict[str, np.ndarray]) -> dict[s
 if __name__ == '__main__':
     check_pinned_kernels()
     bag, out = map(Path, sys.argv[1:3])
-    np.savez(out, **golden_outputs(bag))
+    from cloe_ros.core import ahead
+
+    np.savez(out, **golden_outputs(bag), kernels_ahead=np.array(ahead.MODULE is not None))

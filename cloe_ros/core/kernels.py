@@ -30,9 +30,11 @@ section 4). The kernels that need them (the identifier's solve and excitation me
 numpy calls instead, in numpy's own OpenBLAS (:mod:`~cloe_ros.core.blas`), which gives numpy's
 bits.
 
-The kernels Python calls compile when their module is imported (explicit signatures) and are
-cached on disk beside it (``cache=True``), so no message ever waits on a compile: the first
-import on a machine takes about a minute, later ones load the machine code. The helpers, which
+Where the kernels were built ahead (:mod:`~cloe_ros.core.ahead`), each kernel Python calls is
+the built module's function, and numba is not imported. Otherwise the kernels Python calls
+compile when their module is imported (explicit signatures) and are cached on disk beside it
+(``cache=True``), so no message ever waits on a compile: the first import on a machine takes
+about a minute, later ones load the machine code. The helpers, which
 only other kernels call (:meth:`Compiler.helper`), are compiled into their callers and never
 loaded by themselves: an import loads only the kernels Python calls (24 of the 52). When that
 came in, it loaded 25 kernels instead of 64, about 0.2 s less per process (EVALUATION.md,
@@ -44,15 +46,17 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from numba import njit, types
-from numba.core.errors import NumbaError
+
+from cloe_ros.core import ahead
 
 
 class Compiler:
     """The decorator of a module's kernels: ``numba.njit(signature)`` (or, for a helper,
     ``numba.njit`` alone: :meth:`helper`), without the GIL, with
     numpy's errors (``x / 0`` gives inf or nan, not an exception) and with numba's cache where
-    it can have one.
+    it can have one; or, in a process that runs the kernels built ahead
+    (:mod:`~cloe_ros.core.ahead`), the built module's function of the same name, and numba is
+    not imported.
 
     The cache holds machine code by the file's path, and what it pickles names the module: the
     file loaded under another name (a script's importlib, a checker) would leave entries that
@@ -64,11 +68,21 @@ class Compiler:
     before any message), and one warning says so."""
 
     def __init__(self, module: str, own: str) -> None:
+        self.name = own.rsplit('.', 1)[1]  # (the built module's functions are named by it)
         self.cached = module == own
 
     def __call__(self, signature):
-        """A kernel Python calls: compiled for ``signature`` when it is decorated."""
+        """A kernel Python calls: compiled for ``signature`` when it is decorated (the built
+        module's, where one runs; registered for the build, in the build)."""
+        if ahead.MODULE is not None:
+            return lambda func: ahead.function(self.name, func.__name__, signature)
+        if ahead.BUILDING:
+            return lambda func: self._register(func, signature)
         return lambda func: self._jit(signature, func)
+
+    def _register(self, func, signature):
+        ahead.register(self.name, func, signature)
+        return self._jit(signature, func)  # (as numba's JIT has it: a recursive kernel needs it)
 
     def helper(self, func):
         """A kernel only other kernels call: compiled, for the types they pass, into each
@@ -76,10 +90,22 @@ class Compiler:
         its helpers' machine code, so a helper is never loaded by itself, and importing the
         modules loads only what Python calls (numba's load of a cached kernel costs about as
         much as its code is long). Python may call a helper (the tests do): numba then
-        compiles it for those types, or loads them from its cache."""
+        compiles it for those types, or loads them from its cache. In a process that runs
+        the kernels built ahead, the helper is its Python function."""
+        if ahead.MODULE is not None:
+            return func
         return self._jit(None, func)
 
     def _jit(self, signature, func):
+        from numba import njit
+        from numba.core.errors import NumbaError
+
+        from cloe_ros.core import blas
+
+        if blas.AVAILABLE:  # (OpenBLAS linked before a cached kernel that calls it loads)
+            import llvmlite.binding
+
+            llvmlite.binding.load_library_permanently(blas.LIBRARY)
         options = dict(nogil=True, error_model='numpy')
         signature = () if signature is None else (signature,)
         if self.cached:
@@ -512,14 +538,14 @@ def iv_step_long(xi, y, excitation, threshold, active, settled, mu, h, entry_row
 
 # ------------------------------------------------------------------------------ odometry
 
-_RO = types.Array(types.float64, 1, 'A', readonly=True)
+_RO = "Array(float64, 1, 'A', readonly=True)"
 
 #: :func:`odometry_state`'s verdicts.
 ODOMETRY_OK, NON_FINITE, BAD_QUATERNION, BAD_POSITION, BAD_VELOCITY, BAD_RATE, BAD_TILT = range(7)
 
 
-@_compiled(types.intp(_RO, _RO, _RO, _RO, types.float64, types.float64, types.float64,
-                      types.float64, types.float64, types.float64[::1], types.float64[::1]))
+@_compiled(f'intp({_RO}, {_RO}, {_RO}, {_RO}, float64, float64, float64, float64, float64,'
+           f' {_F1}, {_F1})')
 def odometry_state(position, orientation, linear, angular, quaternion_tolerance, max_position,
                    max_speed, max_rate, max_tilt, zeta, detail):  # fmt: skip
     """The checks of an odometry sample, in order, and its state: returns the first problem
@@ -574,7 +600,7 @@ def odometry_state(position, orientation, linear, angular, quaternion_tolerance,
     return ODOMETRY_OK
 
 
-@_compiled(types.void(_RO, _RO, types.boolean, types.float64[::1]))
+@_compiled(f'void({_RO}, {_RO}, boolean, {_F1})')
 def state_message(zeta, variance, with_variance, out):
     """The 85 doubles of ``cloe/state`` (an Odometry, in field order: position, orientation,
     pose covariance, body velocity, body rates, twist covariance) of the state ``zeta`` (12,)

@@ -115,7 +115,8 @@ def test_the_kernels_loaded_under_another_name_leave_the_packages_cache_alone(tm
         'spec.loader.exec_module(module)\n'
     )  # fmt: skip
     # a cache of its own, empty: the first load compiles, and would write its entries there
-    env = {**os.environ, 'PYTHONPATH': str(REPO), 'NUMBA_CACHE_DIR': str(tmp_path / 'cache')}
+    env = {**os.environ, 'PYTHONPATH': str(REPO), 'NUMBA_CACHE_DIR': str(tmp_path / 'cache'),
+           'CLOE_ROS_KERNELS': 'jit'}  # (numba's JIT and its cache, not the kernels built ahead)
     for code, args in ((load, [kernels.__file__]), ('import cloe_ros.core.kernels', [])):
         done = subprocess.run([sys.executable, '-c', code, *args], env=env, cwd=tmp_path,
                               capture_output=True, text=True, timeout=300)  # fmt: skip
@@ -142,7 +143,7 @@ def test_the_kernels_compile_without_a_cache_where_numba_cannot_have_one(tmp_pat
         'print(k._compiled.cached, sum("cannot cache" in str(w.message) for w in caught),\n'
         '      k.einsum_dot(np.ones((1, 3)), 0, np.arange(3.0)[None], 0, 0, 3))\n'
     )  # fmt: skip
-    env = {**os.environ, 'PYTHONPATH': str(REPO)}
+    env = {**os.environ, 'PYTHONPATH': str(REPO), 'CLOE_ROS_KERNELS': 'jit'}
     done = subprocess.run([sys.executable, '-c', code], env=env, cwd=tmp_path,
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
@@ -150,7 +151,7 @@ def test_the_kernels_compile_without_a_cache_where_numba_cannot_have_one(tmp_pat
 
 
 MODULES = ('kernels', 'kernels_identifier', 'kernels_covariance', 'kernels_ensemble',
-           'kernels_combine', 'kernels_models', 'blas')
+           'kernels_combine', 'kernels_models', 'blas_kernels')
 
 LOADED = r'''
 import importlib, json, sys
@@ -172,7 +173,7 @@ print(json.dumps([helpers, at_import, after]))
 def kernels_loaded(bag: str) -> tuple[list[str], dict[str, int], dict[str, int]]:
     """In a new process: the helper kernels' names, and how many signatures each kernel has
     compiled or loaded after the import and after ``bag`` ran through the engine."""
-    env = {**os.environ, 'PYTHONPATH': str(REPO)}
+    env = {**os.environ, 'PYTHONPATH': str(REPO), 'CLOE_ROS_KERNELS': 'jit'}
     done = subprocess.run([sys.executable, '-c', LOADED, ','.join(MODULES), bag], env=env,
                           cwd=REPO, capture_output=True, text=True, timeout=600)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]

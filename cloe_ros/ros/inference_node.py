@@ -41,6 +41,7 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from cloe_ros.core import ahead
 from cloe_ros.core.anticipation import CHANNELS
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.fleet import Fleet
@@ -88,6 +89,9 @@ STALE_AFTER = 2.0
 #: :class:`Load`.
 BUSY_WARN = 0.8
 LATE_WARN = 0.5
+#: The start-up log's words for the kernels the node runs (its status key ``kernels``): the ones
+#: built ahead, or numba's JIT (cloe_ros/core/ahead.py).
+KERNELS_NOTE = {'ahead': 'kernels built ahead', 'jit': "kernels compiled by numba's JIT"}
 #: The diagnostics timer publishes a report once this share of ``diagnostics_period`` (node clock)
 #: has passed since the last one (less than all of it, so that the timer's jitter does not skip a
 #: period); the inputs publish it once this other share has passed (more than all of it: the
@@ -182,6 +186,7 @@ class InferenceNode(Node):
         self.engine_config, self.output_config = self._configs(self._values())
         self.listed = check_vehicles(declared['vehicles'])
         self.discover = declared['discover']
+        self.kernels = 'ahead' if ahead.MODULE is not None else 'jit'
         self.shard_index, self.shard_count = declared['shard_index'], declared['shard_count']
         reason = check_shard(self.shard_index, self.shard_count)
         if reason:
@@ -268,6 +273,7 @@ class InferenceNode(Node):
             )  # fmt: skip
         if self.discover:
             notes.append('discovering vehicles')
+        notes.append(KERNELS_NOTE[self.kernels])
         self.get_logger().info(
             f'ready: {self.engine_config.estimator.algorithm} at {self.engine_config.rate:g} Hz '
             f'for {names}' + (f' ({"; ".join(notes)})' if notes else '')
@@ -858,6 +864,7 @@ class InferenceNode(Node):
             ('busy', f'{busy:.3f}'),
             ('late_s', f'{late:.3f}'),
             ('longest_callback_s', f'{longest:.3f}'),
+            ('kernels', self.kernels),
         )
         level = messages.WARN if silent or doubled or self.idle or overload else messages.OK
         return Status(level, self.get_name(), message, self.get_fully_qualified_name(), values)

@@ -14,8 +14,11 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -30,6 +33,8 @@ from ros_helpers import (
     spin_until,
     start_node,
 )
+
+from cloe_ros.ros.inference_node import KERNELS_NOTE
 
 pytestmark = pytest.mark.ros
 
@@ -116,8 +121,19 @@ def test_shipped_config_starts_the_node(ros, tmp_path, executable, config, ready
     differ = {n: (values[n], got[n]) for n in values if not same(values[n], got[n])}
     assert not differ, f'{config} values not taken (file, node): {differ}'
     if executable == 'cloe_inference':
-        # the log says the algorithm and rate the file gives
+        # the log says the algorithm and rate the file gives, and the kernels the node runs: the
+        # ones built ahead where the installed package has them (make install builds them)
         assert f'ready: {values["algorithm"]} at {values["rate"]:g} Hz' in out
+        assert KERNELS_NOTE['ahead' if installed_kernels_built() else 'jit'] in out, out
+
+
+def installed_kernels_built() -> bool:
+    """Whether the installed package (the nodes') has its kernels built ahead, current."""
+    code = 'from cloe_ros.core import ahead; print(ahead.module_path().is_file())'
+    env = {k: v for k, v in os.environ.items() if k not in ('PYTHONPATH', 'CLOE_ROS_KERNELS')}
+    done = subprocess.run([sys.executable, '-c', code], env=env, cwd='/', capture_output=True,
+                          text=True, timeout=120, check=True)  # fmt: skip
+    return done.stdout.split() == ['True']
 
 
 # -- files the nodes refuse ---------------------------------------------------------------------

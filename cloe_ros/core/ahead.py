@@ -20,12 +20,13 @@ Which kernels a process runs, chosen when this module is first imported:
 Both are the same Python compiled by the same numba, with the same options (no fast-math,
 numpy's error model); the built module targets the generic x86-64, and neither contracts
 arithmetic into fused multiply-adds, so they give the same bits, and the golden test holds in
-either (test/test_golden.py runs the module built ahead, and numba's JIT on the sample bags).
+either (test/test_golden.py runs the module built ahead on every bag, numba's JIT on
+``bags/position``).
 
 numba's dispatcher refuses arguments of other types than a kernel's signature; the built
-module's functions take them as given. With ``CLOE_ROS_CHECK_KERNELS=1`` (the test suite sets
-it for the processes it starts), each is wrapped in numba's check of its arguments against its
-signature, at numba's cost.
+module's functions take them as given. With ``CLOE_ROS_CHECK_KERNELS=1``, each is wrapped in
+numba's check of its arguments against its signature, at numba's cost (test/test_golden.py
+runs ``bags/position`` so: every call of a whole flight passes the check).
 
 In a process that runs the module built ahead, a helper (:meth:`Compiler.helper
 <cloe_ros.core.kernels.Compiler.helper>`) is its Python function, and :mod:`~cloe_ros.core.blas`'

@@ -106,7 +106,8 @@ def time_kernels() -> dict[str, list]:
     from cloe_ros.core import ahead
 
     if ahead.MODULE is not None:  # the kernels built ahead: the module's functions
-        built = {id(value) for name, value in vars(ahead.MODULE).items() if '__' in name[1:-2]}
+        built = {id(getattr(ahead.MODULE, name)) for name in dir(ahead.MODULE)
+                 if not name.startswith('_')}  # (its kernels: 'kernels__iv_step_filter', ...)
 
         def is_kernel(value):
             return id(value) in built

@@ -104,7 +104,7 @@ def _mode() -> str:
 
 
 #: Whether this process is the build (``python -m cloe_ros.core.ahead``): the kernels register
-#: themselves (:func:`register`) instead of compiling.
+#: themselves (:func:`register`) as they compile (numba's JIT, its cache filled on the way).
 BUILDING = False
 #: The built module this process runs, or None (numba's JIT).
 MODULE = None if _mode() == 'jit' else _load()
@@ -118,12 +118,18 @@ def select(mode: str) -> None:
     """Run ``mode``'s kernels (``'jit'``: numba's, ``''``: the default) in this process. Only
     before any kernel module is imported: the kernels are bound when their module runs."""
     global MODULE
-    loaded = [name for name in KERNEL_MODULES if f'cloe_ros.core.{name}' in sys.modules]
-    if loaded:
-        raise RuntimeError(f'select({mode!r}) after the kernels were imported ({loaded})')
+    _refuse_after_import(f'select({mode!r})')
     if mode not in MODES:
         raise ValueError(f'kernels {mode!r}: expected "" or "jit"')
     MODULE = None if mode == 'jit' else _load()
+
+
+def _refuse_after_import(what: str) -> None:
+    """A RuntimeError naming ``what`` where a kernel module was imported already (its kernels
+    were bound then)."""
+    loaded = [name for name in KERNEL_MODULES if f'cloe_ros.core.{name}' in sys.modules]
+    if loaded:
+        raise RuntimeError(f'{what} after the kernels were imported ({loaded})')
 
 
 def function(module: str, name: str, signature):
@@ -167,14 +173,11 @@ def build(folder: Path = HERE, *, verbose: bool = False) -> Path:
     """Compile the kernels of :data:`KERNEL_MODULES` into the module :func:`module_path` names
     in ``folder``, replacing any older build there; returns its path. In a process that has
     imported no kernel module yet (:data:`BUILDING` makes their decorators register them)."""
-    import importlib
     import shutil
     import tempfile
 
     global BUILDING, MODULE
-    loaded = [name for name in KERNEL_MODULES if f'cloe_ros.core.{name}' in sys.modules]
-    if loaded:
-        raise RuntimeError(f'build() after the kernels were imported ({loaded})')
+    _refuse_after_import('build()')
     from cloe_ros.core import blas
 
     if not blas.AVAILABLE:
@@ -188,7 +191,8 @@ def build(folder: Path = HERE, *, verbose: bool = False) -> Path:
     for name in KERNEL_MODULES:
         importlib.import_module(f'cloe_ros.core.{name}')
     target = module_path(folder)
-    cc = CC(target.name.split('.')[0])
+    stem = target.name.split('.')[0]  # (module_name(), without hashing the sources again)
+    cc = CC(stem)
     cc.verbose = verbose
     for module, name, signature, func in REGISTERED:
         cc.export(f'{module}__{name}', signature)(func)
@@ -205,7 +209,7 @@ def build(folder: Path = HERE, *, verbose: bool = False) -> Path:
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
         cc.output_dir = tmp
         cc.compile()
-        (built,) = Path(tmp).glob(f'{target.name.split(".")[0]}*')
+        (built,) = Path(tmp).glob(f'{stem}*')
         shutil.move(built, target)  # (one rename: a process starting now loads all or none)
     for old in folder.glob(f'{PREFIX}*'):
         if old != target:

@@ -34,6 +34,7 @@ never imports it: the built module calls the library by name.
 from __future__ import annotations
 
 import ctypes
+import functools
 import glob
 import os
 
@@ -68,6 +69,15 @@ def symbol(name: str) -> str:
 LIBRARY = _find_library()
 #: Whether the kernels can call numpy's BLAS and LAPACK (see the module docstring).
 AVAILABLE = LIBRARY is not None and os.environ.get('CLOE_ROS_NO_BLAS_KERNELS', '') in ('', '0')
+
+
+@functools.cache
+def link_for_numba() -> None:
+    """Make :data:`LIBRARY` known to numba's linker (llvmlite), once per process: a kernel that
+    calls it, compiled or loaded from numba's cache, is linked to its routines by name."""
+    import llvmlite.binding
+
+    llvmlite.binding.load_library_permanently(LIBRARY)
 
 
 def __getattr__(name: str):

@@ -8,14 +8,13 @@ it imports numba.
 
 from __future__ import annotations
 
-import llvmlite.binding
 import numpy as np
 from numba import types
 
-from cloe_ros.core.blas import LIBRARY, symbol
+from cloe_ros.core.blas import link_for_numba, symbol
 from cloe_ros.core.kernels import Compiler
 
-llvmlite.binding.load_library_permanently(LIBRARY)  # (the kernels link to it by name)
+link_for_numba()  # (the kernels link to it by name)
 
 _P = types.CPointer
 _I, _D, _C = types.int64, types.float64, types.int32  # (blasint, double, CBLAS enums)

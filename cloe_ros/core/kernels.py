@@ -103,9 +103,7 @@ class Compiler:
         from cloe_ros.core import blas
 
         if blas.AVAILABLE:  # (OpenBLAS linked before a cached kernel that calls it loads)
-            import llvmlite.binding
-
-            llvmlite.binding.load_library_permanently(blas.LIBRARY)
+            blas.link_for_numba()
         options = dict(nogil=True, error_model='numpy')
         signature = () if signature is None else (signature,)
         if self.cached:

@@ -259,6 +259,13 @@ class _Writer:
 _ZEROS36 = np.zeros(36)
 
 
+def encode_string(text: str) -> bytes:
+    """A ``std_msgs/String``."""
+    w = _Writer()
+    w.string(text)
+    return bytes(w.buf)
+
+
 def encode_odometry(sample: OdometrySample) -> bytes:
     """CDR of a ``nav_msgs/msg/Odometry``; covariances default to zeros (unknown)."""
     w = _Writer()

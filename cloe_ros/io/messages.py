@@ -2,17 +2,19 @@
 
 The nodes (raw subscriptions and raw publishing) and the offline tools (bags) both go through these
 functions, so the same bytes give the same samples and the same estimates give the same bytes.
-Serialization uses the rosbags type store of ROS 2 Jazzy.
+The contract's messages and the outputs go through the lean codec (io/cdr.py); the others through
+the rosbags type store of ROS 2 Jazzy, ``TYPESTORE``, and its message classes (``Odometry``,
+``Header``, ...), all made on first use: the type store's import and construction take about
+0.15 s of CPU, which ``cloe infer``, whose messages all have a lean codec, does not spend.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
 
 from cloe_ros.core.samples import (
     MAX_STAMP_NS,
@@ -24,8 +26,6 @@ from cloe_ros.core.samples import (
 from cloe_ros.io import cdr
 from cloe_ros.io.errors import MessageError
 
-TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-
 ODOMETRY = 'nav_msgs/msg/Odometry'
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 PATH = 'nav_msgs/msg/Path'
@@ -36,33 +36,54 @@ MARKER_ARRAY = 'visualization_msgs/msg/MarkerArray'
 STRING = 'std_msgs/msg/String'
 PARAMETER_EVENT = 'rcl_interfaces/msg/ParameterEvent'
 
-_T = TYPESTORE.types
-Time = _T['builtin_interfaces/msg/Time']
-Header = _T['std_msgs/msg/Header']
-Point = _T['geometry_msgs/msg/Point']
-Quaternion = _T['geometry_msgs/msg/Quaternion']
-Vector3 = _T['geometry_msgs/msg/Vector3']
-Pose = _T['geometry_msgs/msg/Pose']
-PoseStamped = _T[POSE_STAMPED]
-PoseWithCovariance = _T['geometry_msgs/msg/PoseWithCovariance']
-Twist = _T['geometry_msgs/msg/Twist']
-TwistWithCovariance = _T['geometry_msgs/msg/TwistWithCovariance']
-Odometry = _T[ODOMETRY]
-Path = _T[PATH]
-MultiArrayDimension = _T['std_msgs/msg/MultiArrayDimension']
-MultiArrayLayout = _T['std_msgs/msg/MultiArrayLayout']
-Float64MultiArray = _T[FLOAT64_MULTI_ARRAY]
-KeyValue = _T['diagnostic_msgs/msg/KeyValue']
-DiagnosticStatus = _T['diagnostic_msgs/msg/DiagnosticStatus']
-DiagnosticArray = _T[DIAGNOSTIC_ARRAY]
-Clock = _T[CLOCK]
-ColorRGBA = _T['std_msgs/msg/ColorRGBA']
-Duration = _T['builtin_interfaces/msg/Duration']
-Marker = _T['visualization_msgs/msg/Marker']
-MarkerArray = _T[MARKER_ARRAY]
-MeshFile = _T['visualization_msgs/msg/MeshFile']
-CompressedImage = _T['sensor_msgs/msg/CompressedImage']
-String = _T[STRING]
+#: The message classes of the type store this module offers, by name (``messages.Odometry``).
+_CLASSES = {
+    'Time': 'builtin_interfaces/msg/Time',
+    'Header': 'std_msgs/msg/Header',
+    'Point': 'geometry_msgs/msg/Point',
+    'Quaternion': 'geometry_msgs/msg/Quaternion',
+    'Vector3': 'geometry_msgs/msg/Vector3',
+    'Pose': 'geometry_msgs/msg/Pose',
+    'PoseStamped': POSE_STAMPED,
+    'PoseWithCovariance': 'geometry_msgs/msg/PoseWithCovariance',
+    'Twist': 'geometry_msgs/msg/Twist',
+    'TwistWithCovariance': 'geometry_msgs/msg/TwistWithCovariance',
+    'Odometry': ODOMETRY,
+    'Path': PATH,
+    'MultiArrayDimension': 'std_msgs/msg/MultiArrayDimension',
+    'MultiArrayLayout': 'std_msgs/msg/MultiArrayLayout',
+    'Float64MultiArray': FLOAT64_MULTI_ARRAY,
+    'KeyValue': 'diagnostic_msgs/msg/KeyValue',
+    'DiagnosticStatus': 'diagnostic_msgs/msg/DiagnosticStatus',
+    'DiagnosticArray': DIAGNOSTIC_ARRAY,
+    'Clock': CLOCK,
+    'ColorRGBA': 'std_msgs/msg/ColorRGBA',
+    'Duration': 'builtin_interfaces/msg/Duration',
+    'Marker': 'visualization_msgs/msg/Marker',
+    'MarkerArray': MARKER_ARRAY,
+    'MeshFile': 'visualization_msgs/msg/MeshFile',
+    'CompressedImage': 'sensor_msgs/msg/CompressedImage',
+    'String': STRING,
+}
+
+
+@cache
+def typestore():
+    """rosbags' type store of ROS 2 Jazzy (``TYPESTORE``), made on first use."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def __getattr__(name: str):
+    """``TYPESTORE`` and the message classes of ``_CLASSES``, on first use."""
+    if name == 'TYPESTORE':
+        return typestore()
+    msgtype = _CLASSES.get(name)
+    if msgtype is None:
+        msg = f'module {__name__!r} has no attribute {name!r}'
+        raise AttributeError(msg)
+    return typestore().types[msgtype]
 
 
 def stamp_to_ns(stamp) -> int:
@@ -81,12 +102,12 @@ def ns_to_time(ns: int):
         msg = f'stamp {ns} ns is beyond what a ROS message carries (int32 seconds, 2038-01-19)'
         raise MessageError(msg)
     sec, nanosec = divmod(ns, 1_000_000_000)
-    return Time(sec=sec, nanosec=nanosec)
+    return typestore().types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
 
 
 def _deserialize(raw: bytes | memoryview, msgtype: str):
     try:
-        return TYPESTORE.deserialize_cdr(raw, msgtype)
+        return typestore().deserialize_cdr(raw, msgtype)
     except Exception as err:
         msg = f'cannot decode {len(raw)} bytes as {msgtype}: {err}'
         raise MessageError(msg) from err
@@ -178,8 +199,8 @@ def encode_multi_array(dims: Sequence[tuple[str, int]], data: np.ndarray) -> byt
 
 
 def encode_string(text: str) -> bytes:
-    """CDR of a ``std_msgs/msg/String``."""
-    return bytes(TYPESTORE.serialize_cdr(String(data=text), STRING))
+    """CDR of a ``std_msgs/msg/String`` (lean codec, io/cdr.py)."""
+    return cdr.encode_string(text)
 
 
 def decode_string(raw: bytes | memoryview) -> str:
@@ -228,7 +249,8 @@ def encode_prediction_markers(
 
 def encode_clock(ns: int) -> bytes:
     """CDR of a ``rosgraph_msgs/msg/Clock``."""
-    return bytes(TYPESTORE.serialize_cdr(Clock(clock=ns_to_time(ns)), CLOCK))
+    store = typestore()
+    return bytes(store.serialize_cdr(store.types[CLOCK](clock=ns_to_time(ns)), CLOCK))
 
 
 #: DiagnosticStatus levels.
@@ -248,7 +270,11 @@ class Status:
 
 def encode_diagnostics(stamp_ns: int, statuses: Sequence[Status]) -> bytes:
     """CDR of a ``diagnostic_msgs/msg/DiagnosticArray``."""
-    msg = DiagnosticArray(
+    store = typestore()
+    types = store.types
+    Header, KeyValue = types['std_msgs/msg/Header'], types['diagnostic_msgs/msg/KeyValue']
+    DiagnosticStatus = types['diagnostic_msgs/msg/DiagnosticStatus']
+    msg = types[DIAGNOSTIC_ARRAY](
         header=Header(stamp=ns_to_time(stamp_ns), frame_id=''),
         status=[
             DiagnosticStatus(
@@ -261,7 +287,7 @@ def encode_diagnostics(stamp_ns: int, statuses: Sequence[Status]) -> bytes:
             for s in statuses
         ],
     )
-    return bytes(TYPESTORE.serialize_cdr(msg, DIAGNOSTIC_ARRAY))
+    return bytes(store.serialize_cdr(msg, DIAGNOSTIC_ARRAY))
 
 
 def decode_diagnostics(raw: bytes | memoryview) -> tuple[int, list[Status]]:

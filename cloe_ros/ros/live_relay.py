@@ -26,7 +26,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 
-from cloe_ros.io.messages import TYPESTORE
+from cloe_ros.io.messages import typestore
 from cloe_ros.ros import common
 from cloe_ros.ros.player_node import message_class
 
@@ -37,7 +37,7 @@ SKIPPED = ('/rosout', '/parameter_events')
 def message_definition(msgtype: str) -> str | None:
     """The ``ros2msg`` definition of ``msgtype`` with its dependencies (None: type unknown)."""
     try:
-        text, _ = TYPESTORE.generate_msgdef(msgtype, ros_version=2)
+        text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
     except Exception:  # rosbags raises its own errors for types it does not know
         return None
     return text

@@ -333,7 +333,7 @@ class BagRecorder(Node):
             self._writer.add_offered_qos(topic, [offered_qos(p.qos_profile) for p in new])
 
     def _subscribe(self, topic, msgtype, profiles, reliable: bool, transient_local: bool) -> None:
-        if msgtype not in messages.TYPESTORE.types:
+        if msgtype not in messages.typestore().types:
             self._skip(topic, f'type {msgtype} is not a ROS 2 Jazzy type known to rosbags')
             return
         cls = message_class(msgtype)

@@ -267,3 +267,11 @@ def test_a_huge_plan_is_refused_before_its_poses_are_decoded():
     lying = path[:count_at] + struct.pack('<I', 20_000) + path[count_at + 4:]
     with pytest.raises(MessageError, match='20000 poses cannot fit'):
         messages.decode_path(lying)
+
+
+@pytest.mark.parametrize('text', ['', 'a', 'abcd', 'theta_hat.x_theta.a_x\nz', 'héllo ✓'])
+def test_a_string_is_rosbags_bytes(text):
+    want = bytes(TYPESTORE.serialize_cdr(TYPESTORE.types[messages.STRING](data=text),
+                                         messages.STRING))  # fmt: skip
+    assert messages.encode_string(text) == want
+    assert messages.decode_string(want) == text

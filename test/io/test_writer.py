@@ -11,6 +11,7 @@ import errno
 import io
 import os
 import shutil
+import sys
 import zlib
 from pathlib import Path
 
@@ -34,6 +35,7 @@ from rosbags.interfaces import (
 from rosbags.rosbag2 import Reader as RosbagsReader
 
 from cloe_ros.core.samples import OdometrySample, PoseSample
+from cloe_ros.io import messages
 from cloe_ros.io.messages import (
     ODOMETRY,
     POSE_STAMPED,
@@ -42,6 +44,7 @@ from cloe_ros.io.messages import (
     encode_odometry,
     encode_pose_stamped,
 )
+from cloe_ros.io.msgdefs import MSGDEFS
 from cloe_ros.io.writer import BagWriter, WriterError
 
 QOS = Qos(
@@ -369,3 +372,18 @@ def test_offered_qos_of_later_publishers_go_into_the_metadata(tmp_path: Path) ->
     with AnyReader([tmp_path / 'b']) as reader:
         (conn,) = reader.connections
         assert conn.ext.offered_qos_profiles == [QOS, reliable]
+
+
+def test_the_stored_definitions_are_rosbags():
+    """io/msgdefs.py (what the writer uses for the package's own types, without rosbags' type
+    store) is what scripts/make_msgdefs.py writes from the type store now."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / 'scripts'))
+    import make_msgdefs
+
+    assert make_msgdefs.render() == Path(make_msgdefs.OUT).read_text(), (
+        'cloe_ros/io/msgdefs.py is out of date: run python scripts/make_msgdefs.py'
+    )
+    store = messages.TYPESTORE
+    for msgtype, (text, rihs01) in MSGDEFS.items():
+        assert text == store.generate_msgdef(msgtype, ros_version=2)[0]
+        assert rihs01 == store.hash_rihs01(msgtype)

@@ -1,8 +1,9 @@
 """Speed of the package's hot paths, written as a Markdown table (see EVALUATION.md).
 
-    .venv/bin/python scripts/benchmark.py
+    .venv/bin/python scripts/benchmark.py [--writer]
 
-Measures, on this machine: one estimator step (core, batched over N vehicles), one engine step
+Measures, on this machine: writing a bag (``BagWriter`` beside the ``mcap`` library's writer; only
+that with ``--writer``), one estimator step (core, batched over N vehicles), one engine step
 (validation + step + output encoding, as the node does it), the CDR decode/encode of the
 contract's messages, and `cloe infer` on the sample bags and on the corpus of real flights, when
 it is there (the folder ``CLOE_FLIGHTS`` names, else ``shared/data/flights`` beside the checkout,
@@ -11,6 +12,7 @@ as for the tests: test/corpus.py), in ms per flight-second.
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 import subprocess
@@ -102,6 +104,61 @@ def codec() -> dict[str, float]:
     return out
 
 
+def bag_writing() -> dict[str, float]:
+    """Seconds per message of writing the messages of bags/position, twice over, with zstd and
+    without: through ``BagWriter`` (cloe_ros/io/mcap_writer.py) and, in the same run, through the
+    ``mcap`` library's writer making the same file (the writer the package used before)."""
+    import shutil
+
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as LibraryWriter
+
+    from cloe_ros.io.reader import BagReader
+    from cloe_ros.io.writer import CHUNK_SIZE, BagWriter
+
+    with BagReader(REPO / 'bags' / 'position') as bag:
+        topics = {name: info.msgtype for name, info in bag.topics.items()}
+        written = [(t, ns, bytes(raw)) for t, ns, raw in bag.messages(set(topics))] * 2
+
+    def ours(compression: str) -> float:
+        tmp = Path(tempfile.mkdtemp())
+        start = time.process_time()
+        with BagWriter(tmp / 'bag', compression=compression) as writer:
+            for name, msgtype in topics.items():
+                writer.add_topic(name, msgtype)
+            for topic, ns, raw in written:
+                writer.write(topic, ns, raw)
+        took = time.process_time() - start
+        shutil.rmtree(tmp)
+        return took / len(written)
+
+    def library(compression: str) -> float:
+        tmp = Path(tempfile.mkdtemp())
+        start = time.process_time()
+        with open(tmp / 'bag.mcap', 'wb') as f:
+            kind = CompressionType.ZSTD if compression == 'zstd' else CompressionType.NONE
+            writer = LibraryWriter(f, chunk_size=CHUNK_SIZE, compression=kind,
+                                   enable_crcs=True, enable_data_crcs=True)  # fmt: skip
+            writer.start(profile='ros2', library='benchmark')
+            channels = {}
+            for name, msgtype in topics.items():
+                schema = writer.register_schema(msgtype, 'ros2msg', b'')
+                channels[name] = writer.register_channel(name, 'cdr', schema, {})
+            for topic, ns, raw in written:
+                writer.add_message(channels[topic], ns, raw, ns)
+            writer.finish()
+        took = time.process_time() - start
+        shutil.rmtree(tmp)
+        return took / len(written)
+
+    out = {}
+    for compression in ('zstd', 'none'):
+        for who, fn in (('BagWriter', ours), ("the mcap library's writer", library)):
+            out[f'{who}, {compression}, {len(written)} messages'] = best_of(
+                functools.partial(fn, compression))
+    return out
+
+
 def infer(bag: Path) -> tuple[float, float]:
     """Median of 3 `cloe infer` runs: (wall s, ms per flight-second as printed)."""
     walls, per = [], []
@@ -119,11 +176,20 @@ def infer(bag: Path) -> tuple[float, float]:
 
 
 def main() -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--writer', action='store_true', help='only the bag writing')
+    args = parser.parse_args()
     limit_blas_threads()  # as the nodes and `cloe` do (cloe_ros/threads.py)
     print(f'machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, '
           f'Python {platform.python_version()}, numpy {np.__version__}\n')  # fmt: skip
     print('| what | time |')
     print('|---|---|')
+    for name, sec in bag_writing().items():
+        print(f'| writing a bag, {name} | {1e6 * sec:.1f} us per message (CPU, best of 3) |')
+    if args.writer:
+        return 0
     for algorithm in ('cloe', 'cloe_sm', 'cloe_iv'):
         for n in (1, 10, 100):
             us = 1e6 * core_step(algorithm, n)

@@ -10,8 +10,9 @@ library builds a record object for each message and writes it field by field, an
 entry of a message index by itself. Here a message is packed into the chunk's buffer with one
 call, and its index entry is two ints in a list; the chunk's times and the statistics' counts are
 worked out from those lists when the chunk is written. ``cloe infer`` writes some 22000 messages
-for a 50 s flight; the library's path cost 15 µs per message, this one 8 µs, compression included
-(EVALUATION.md, section 4).
+for a 50 s flight: :class:`~cloe_ros.io.writer.BagWriter` took 14–16 µs per message on the
+library's writer, 5 µs on this one, zstd compression included (``scripts/benchmark.py --writer``,
+EVALUATION.md, section 4).
 
 Writes go to the stream where the library's go: the magic and header at construction, a chunk
 and its message indexes once its records pass ``chunk_size`` bytes or on :meth:`flush`, a

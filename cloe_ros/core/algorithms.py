@@ -1,7 +1,7 @@
 """The algorithms: their names, and the estimator of each behind one constructor.
 
-The names need no import of the estimators (which bring scipy), so that the command line can offer
-them without that cost.
+The names need no import of the estimators (which bring the compiled kernels, or numba), so that
+the command line can offer them without that cost.
 """
 
 from __future__ import annotations

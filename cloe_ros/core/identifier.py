@@ -47,7 +47,6 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import linalg
 
 from cloe_ros.core import kernels, kernels_identifier
 from cloe_ros.core.model import (
@@ -368,9 +367,9 @@ def tustin(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, h: float)
     import (the node's start-up) for these five lines."""
     alpha = 0.5
     ima = np.eye(a.shape[0]) - alpha * h * a
-    ad = linalg.solve(ima, np.eye(a.shape[0]) + (1.0 - alpha) * h * a)
-    bd = linalg.solve(ima, h * b)
-    cd = linalg.solve(ima.transpose(), c.transpose()).transpose()
+    ad = np.linalg.solve(ima, np.eye(a.shape[0]) + (1.0 - alpha) * h * a)
+    bd = np.linalg.solve(ima, h * b)
+    cd = np.linalg.solve(ima.transpose(), c.transpose()).transpose()
     dd = d + alpha * np.dot(c, bd)
     return ad, bd, cd, dd
 

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cloe_ros.core.matrix_exp import expm
+
 GRAVITY = 9.81
 """Gravitational acceleration used by the model and the simulator, m/s^2."""
 
@@ -194,8 +196,6 @@ def discretise(
     m = np.zeros((*a.shape[:-2], N_STATES + N_REFERENCES, N_STATES + N_REFERENCES))
     m[..., :N_STATES, :N_STATES] = a
     m[..., :N_STATES, N_STATES:] = b
-    from scipy.linalg import expm  # imported here: the rest of the module needs numpy alone
-
     e = expm(m * dt)
     return e[..., :N_STATES, :N_STATES], e[..., :N_STATES, N_STATES:]
 

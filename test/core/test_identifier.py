@@ -518,13 +518,27 @@ def test_the_estimate_does_not_depend_on_the_origin_of_the_world_frame(disturbed
 
 
 def test_the_filters_tustin_step_is_scipys_to_the_bit():
-    """identifier.tustin does what scipy.signal.cont2discrete(method='bilinear') does (the node
-    no longer imports scipy.signal for it), with the same operations: the same bits."""
+    """identifier.tustin does what scipy.signal.cont2discrete(method='bilinear') does, with
+    numpy's solves instead of scipy.linalg's (the engine imports neither scipy.signal nor
+    scipy.linalg): on the identifier's own filters, over the settings' ranges of bandwidth,
+    high-pass corner and rate, the same bits (the golden test depends on them); on any system,
+    the same to the last unit in the last place (the two LAPACK builds round some solves of
+    random systems differently)."""
     from scipy.signal import cont2discrete
 
-    from cloe_ros.core.identifier import tustin
+    from cloe_ros.core.identifier import filter_matrices, tustin
 
     rng = np.random.default_rng(1)
+    for _ in range(500):
+        lam, wh = 10.0 ** rng.uniform(-1, 3), 10.0 ** rng.uniform(-3, 2)
+        h = 1.0 / 10.0 ** rng.uniform(0.0, np.log10(2000.0))
+        den = np.polymul(np.polymul([1.0, lam], [1.0, lam]), [1.0, wh])
+        a = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-den[3], -den[2], -den[1]]])
+        b, c = np.array([[0.0], [0.0], [1.0]]), np.array([[0.0, lam**2, 0.0], [0.0, 0.0, lam**2]])
+        ad, bd, cd, dd = cont2discrete((a, b, c, np.zeros((2, 1))), h, method='bilinear')[:4]
+        want = ad, bd[:, 0], cd[0], dd[0, 0], cd[1], dd[1, 0]
+        for got, expected in zip(filter_matrices(lam, wh, h), want):
+            np.testing.assert_array_equal(got, expected)
     for _ in range(200):
         n = int(rng.integers(1, 6))
         a, b = 10.0 * rng.normal(size=(n, n)), rng.normal(size=(n, 2))
@@ -532,7 +546,7 @@ def test_the_filters_tustin_step_is_scipys_to_the_bit():
         h = 10.0 ** rng.uniform(-4, -1)
         want = cont2discrete((a, b, c, d), h, method='bilinear')[:4]
         for got, expected in zip(tustin(a, b, c, d, h), want):
-            np.testing.assert_array_equal(got, expected)
+            np.testing.assert_array_max_ulp(got, expected, maxulp=1)
 
 
 def test_the_packed_statistics_are_the_full_outer_products_and_leave_out_only_zeros():

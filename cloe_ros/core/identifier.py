@@ -364,7 +364,8 @@ def filter_matrices(bandwidth: float, highpass: float, h: float):
 def tustin(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, h: float):
     """The bilinear (Tustin) discretisation of ``(A, B, C, D)`` with step ``h``: the operations
     of ``scipy.signal.cont2discrete(..., method='bilinear')``, whose module takes half a second to
-    import (the node's start-up) for these five lines."""
+    import (the node's start-up) for these five lines, with numpy's solves for scipy.linalg's (the
+    same bits on the identifier's filters; test_identifier checks both)."""
     alpha = 0.5
     ima = np.eye(a.shape[0]) - alpha * h * a
     ad = np.linalg.solve(ima, np.eye(a.shape[0]) + (1.0 - alpha) * h * a)

@@ -48,11 +48,10 @@ def _core():
     for suffix in importlib.machinery.EXTENSION_SUFFIXES:
         path = folder / f'_matfuncs_expm{suffix}'
         if path.is_file():
-            loader = importlib.machinery.ExtensionFileLoader(_EXTENSION, str(path))
-            module_spec = importlib.util.spec_from_file_location(_EXTENSION, path, loader=loader)
+            module_spec = importlib.util.spec_from_file_location(_EXTENSION, path)
             try:
                 module = importlib.util.module_from_spec(module_spec)
-                loader.exec_module(module)
+                module_spec.loader.exec_module(module)
                 return module.pick_pade_structure, module.pade_UV_calc
             except (ImportError, AttributeError, OSError):
                 return None

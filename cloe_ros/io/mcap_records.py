@@ -51,9 +51,12 @@ from mcap.writer import MCAP0_MAGIC
 
 __all__ = [
     'COMPRESSIONS',
+    'FOOTER_CRC_HEAD',
     'FOOTER_SIZE',
     'MAGIC',
     'MAGIC_SIZE',
+    'MESSAGE_HEAD',
+    'MESSAGE_INDEX_HEAD',
     'RECORD_HEAD_SIZE',
     'Opcode',
     'RecordError',
@@ -69,6 +72,7 @@ __all__ = [
     'opcode_name',
     'parse_record',
     'read_head',
+    'record_bytes',
 ]
 
 MAGIC = MCAP0_MAGIC
@@ -76,11 +80,16 @@ MAGIC = MCAP0_MAGIC
 COMPRESSIONS = ('', 'zstd', 'lz4')
 
 
-def _size_of(record: McapRecord) -> int:
-    """Bytes the record occupies in a file (head included), as the library writes it."""
+def record_bytes(record: McapRecord) -> bytes:
+    """The record as the library writes it into a file, head included."""
     builder = RecordBuilder()
     record.write(builder)
-    return builder.count
+    return builder.end()
+
+
+def _size_of(record: McapRecord) -> int:
+    """Bytes the record occupies in a file (head included), as the library writes it."""
+    return len(record_bytes(record))
 
 
 def _head_size() -> int:
@@ -104,6 +113,13 @@ FOOTER_CRC_PREFIX = FOOTER_SIZE - 4
 _HEAD = struct.Struct('<BQ')
 _MESSAGE = struct.Struct('<HIQQ')
 _INDEX_HEAD = struct.Struct('<HI')
+#: the same as written in one call (:mod:`~cloe_ros.io.mcap_writer`): a message record's head and
+#: fields before its data, a message index's head and fields before its entries
+MESSAGE_HEAD = struct.Struct(_HEAD.format + _MESSAGE.format.lstrip('<'))
+MESSAGE_INDEX_HEAD = struct.Struct(_HEAD.format + _INDEX_HEAD.format.lstrip('<'))
+#: the footer's fields the summary CRC covers (:data:`FOOTER_CRC_PREFIX` bytes): its head, the
+#: summary's start and the summary offsets' start
+FOOTER_CRC_HEAD = struct.Struct(_HEAD.format + 'QQ')
 
 
 class RecordError(ValueError):

@@ -29,7 +29,6 @@ import zlib
 from typing import BinaryIO
 
 from mcap.data_stream import RecordBuilder
-from mcap.opcode import Opcode
 from mcap.records import (
     Channel,
     Chunk,
@@ -43,22 +42,17 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.writer import MCAP0_MAGIC
+
+from cloe_ros.io import mcap_records as mr
+from cloe_ros.io.mcap_records import Opcode, record_bytes
 
 __all__ = ['McapWriter']
 
-#: A message record's head: opcode, record length, channel, sequence, log and publish time.
-_MESSAGE = struct.Struct('<BQHIQQ')
-_MESSAGE_BODY = _MESSAGE.size - 9  # the message's fields after the record's opcode and length
-#: A message index's head: opcode, record length, channel, length of its entries.
-_INDEX_HEAD = struct.Struct('<BQHI')
-_FOOTER_HEAD = struct.Struct('<BQQQ')
-
-
-def _record_bytes(record) -> bytes:
-    builder = RecordBuilder()
-    record.write(builder)
-    return builder.end()
+# the layouts of mcap_records, bound here for the message path
+_MESSAGE, _MESSAGE_BODY = mr.MESSAGE_HEAD, mr.MESSAGE_PREFIX_SIZE
+_INDEX_HEAD = mr.MESSAGE_INDEX_HEAD
+_INDEX_BODY = _INDEX_HEAD.size - mr.RECORD_HEAD_SIZE  # a message index's fields before entries
+_FOOTER_BODY = mr.FOOTER_SIZE - mr.RECORD_HEAD_SIZE
 
 
 class McapWriter:
@@ -93,7 +87,7 @@ class McapWriter:
         self._metadata_indexes: list[MetadataIndex] = []
         self._message_counts: dict[int, int] = {}  # per channel, in order of first message
         self._start_ns = self._end_ns = 0
-        self._write(MCAP0_MAGIC)
+        self._write(mr.MAGIC)
         self._write_record(Header(profile, library))
 
     # -- what the library's writer does, with the same results ---------------------------------
@@ -167,12 +161,13 @@ class McapWriter:
             offset.write(builder)
         summary = builder.end()
         crc = zlib.crc32(summary)
-        crc = zlib.crc32(_FOOTER_HEAD.pack(Opcode.FOOTER, 20, summary_start, offsets_start), crc)
+        crc = zlib.crc32(mr.FOOTER_CRC_HEAD.pack(Opcode.FOOTER, _FOOTER_BODY, summary_start,
+                                                 offsets_start), crc)  # fmt: skip
         self._stream.write(summary)
         footer = Footer(summary_start=summary_start, summary_offset_start=offsets_start,
                         summary_crc=crc)  # fmt: skip
         self._write_record(footer)
-        self._stream.write(MCAP0_MAGIC)
+        self._stream.write(mr.MAGIC)
 
     # -- internals -----------------------------------------------------------------------------
 
@@ -182,12 +177,12 @@ class McapWriter:
 
     def _write_record(self, record) -> int:
         """Write ``record`` (one of the library's) to the data section; its length in bytes."""
-        data = _record_bytes(record)
+        data = record_bytes(record)
         self._write(data)
         return len(data)
 
     def _add_to_chunk(self, record) -> None:
-        self._chunk += _record_bytes(record)
+        self._chunk += record_bytes(record)
         if len(self._chunk) > self._chunk_size and self._index:
             self._write_chunk()
 
@@ -211,7 +206,7 @@ class McapWriter:
         for channel_id, flat in self._index.items():
             offsets[channel_id] = position
             entries = struct.pack(f'<{len(flat)}Q', *flat)
-            head = _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 6 + len(entries), channel_id,
+            head = _INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, _INDEX_BODY + len(entries), channel_id,
                                     len(entries))  # fmt: skip
             piece = head + entries
             pieces.append(piece)

@@ -25,6 +25,15 @@ def test_layouts_are_the_librarys():
     Message(7, 11, b'xyz', 13, 17).write(builder)
     data = builder.end()
     assert mr.read_head(data) == (mr.Opcode.MESSAGE, len(data) - mr.RECORD_HEAD_SIZE)
+    # the layouts the writer packs in one call: the library's bytes
+    assert mr.record_bytes(Message(7, 11, b'xyz', 13, 17)) == data
+    assert mr.MESSAGE_HEAD.pack(mr.Opcode.MESSAGE, mr.MESSAGE_PREFIX_SIZE + 3, 7, 17, 11,
+                                13) + b'xyz' == data  # fmt: skip
+    index = mr.record_bytes(MessageIndex(5, [(1, 2), (3, 4)]))
+    head = mr.MESSAGE_INDEX_HEAD.pack(mr.Opcode.MESSAGE_INDEX, len(index) - mr.RECORD_HEAD_SIZE,
+                                      5, 32)  # fmt: skip
+    assert index.startswith(head) and len(head) == mr.MESSAGE_INDEX_HEAD.size
+    assert mr.FOOTER_CRC_HEAD.size == mr.FOOTER_CRC_PREFIX
 
 
 @pytest.mark.parametrize('size', [0, 1, 100, 4096])

@@ -589,6 +589,7 @@ class PlayerNode(Node):
         period = 1.0 / self.clock_rate
         first = self._first_ns
         lateness = array('d')
+        tick_lateness = array('d')  # /clock's ticks, behind their wall times
         item = self._buffer.get()  # the first chunk is decoded before the clock starts
         offset = f' from {self.start_offset:g} s' if self.start_offset else ''
         looping = ', looping' if self.loop else ''
@@ -625,12 +626,15 @@ class PlayerNode(Node):
                             now_ns = min(max(self._bag_time(next_tick), last_clock_ns), bag.end_ns)
                         last_clock_ns = now_ns
                         clock.publish(encode_clock(now_ns))
+                        tick_lateness.append(time.perf_counter() - next_tick)
                         next_tick += period
                         continue
                 elif not self._wait_until(lambda t=log_ns: self._wall_time(t)):
                     return
-                late = time.perf_counter() - self._wall_time(log_ns)
                 self._publishers_by_topic[topic].publish(raw)
+                # from the wall time it was due to the publish's return: its send time (the
+                # publish's DDS source timestamp) is no later than that
+                late = time.perf_counter() - self._wall_time(log_ns)
                 if math.isfinite(late):  # (not paused between the wait and now)
                     lateness.append(late)
                 count += 1
@@ -644,7 +648,14 @@ class PlayerNode(Node):
             item = self._buffer.get()
         elapsed = time.perf_counter() - wall_start
         self._wait_for_acks()
-        log.info(f'done: {count} messages in {elapsed:.3f} s; {_lateness_summary(lateness)}')
+        ticks = (
+            f'; /clock: {len(tick_lateness)} ticks, {_lateness_summary(tick_lateness)}'
+            if clock is not None
+            else ''
+        )
+        log.info(
+            f'done: {count} messages in {elapsed:.3f} s; {_lateness_summary(lateness)}{ticks}'
+        )
         with self._cond:
             self._playing = False
 
@@ -666,7 +677,8 @@ class PlayerNode(Node):
 
 
 def _lateness_summary(lateness: array) -> str:
-    """Publication times behind schedule: median, 99th percentile and max, ms."""
+    """Publications behind schedule, from their due wall times to the returns of their publish
+    calls: median, 99th percentile and max, ms."""
     if not lateness:
         return 'nothing published'
     ms = np.asarray(lateness) * 1e3

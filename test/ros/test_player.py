@@ -132,11 +132,15 @@ def output(player: NodeProcess) -> str:
     return player.output()
 
 
-def max_lateness_s(out: str) -> float:
-    """The largest lateness behind its schedule the player reports for a message, s (its
-    ``done:`` line: ``behind schedule by median .. ms, 99th percentile .. ms, max .. ms``)."""
+def max_lateness_s(out: str, of: str = 'messages') -> float:
+    """The largest lateness behind its schedule the player reports, s, for a message or (``of``
+    ``'clock'``) a ``/clock`` tick. Its ``done:`` line: ``behind schedule by median .. ms, 99th
+    percentile .. ms, max .. ms``, then, with ``publish_clock``, ``; /clock: <n> ticks, behind
+    schedule by ...`` in the same words."""
     (line,) = [x for x in out.splitlines() if 'done: ' in x and 'behind schedule' in x]
-    return float(line.rsplit('max ', 1)[1].split(' ms')[0]) / 1e3
+    messages, _, ticks = line.partition('; /clock: ')
+    part = {'messages': messages, 'clock': ticks}[of]
+    return float(part.rsplit('max ', 1)[1].split(' ms')[0]) / 1e3
 
 
 def assert_on_schedule(sent: np.ndarray, due: np.ndarray, late_s: float) -> None:
@@ -221,7 +225,7 @@ def test_plays_every_message_with_recorded_timing(ros, tmp_path, b2_messages):
 def test_publishes_clock(ros, tmp_path, b2_messages):
     """/clock ticks every 1/clock_rate s of wall time (the player's schedule), the bag time
     advancing by rate / clock_rate per tick; each tick sent on that schedule to within the
-    lateness the player reports for the messages between which it falls."""
+    lateness the player reports for its ticks."""
     rate, clock_rate = 10.0, 100.0
     arrivals = Arrivals(ros.node, {'/clock': Clock})
     player = start_node(
@@ -268,8 +272,9 @@ def test_publishes_clock(ros, tmp_path, b2_messages):
     step_ns = rate / clock_rate * 1e9
     assert np.all(np.abs(np.diff(clock)[:-1] - step_ns) <= 1), np.diff(clock)[:5]
     # ... and sent on that schedule (the last tick, the bag's end, comes with the last message)
-    assert_on_schedule(sent[:-1], (clock[:-1] - start_ns) / 1e9 / rate, max_lateness_s(
-        output(player)))  # fmt: skip
+    assert_on_schedule(
+        sent[:-1], (clock[:-1] - start_ns) / 1e9 / rate, max_lateness_s(output(player), 'clock')
+    )
 
 
 @needs_b2

@@ -60,3 +60,31 @@ def _release_domains():
     """The domains a test reserved are given back when it ends (its nodes are stopped by then)."""
     yield
     release_test_domains()
+
+
+#: What :func:`infer_in_a_fresh_process` runs: ``cloe infer`` on a bag in a new interpreter,
+#: then prints its exit status and the names of the modules that process imported.
+_FRESH_INFER = """import json, sys
+from cloe_ros.cli.main import main
+code = main(['infer', '-q', sys.argv[1], '-o', sys.argv[2]])
+print(json.dumps([code, sorted(sys.modules)]))
+"""
+
+
+@pytest.fixture(scope='session')
+def infer_in_a_fresh_process(tmp_path_factory) -> tuple[int, frozenset[str], Path]:
+    """``cloe infer bags/position`` as a user's run makes it, in a new interpreter (once per test
+    process): its exit status, the modules it imported, and its output bag. For the tests that
+    check what a run imports (on the modules, not on time)."""
+    import json
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path_factory.mktemp('fresh_infer') / 'out'
+    env = dict(os.environ, PYTHONPATH=str(root))
+    proc = subprocess.run([sys.executable, '-c', _FRESH_INFER, str(root / 'bags' / 'position'),
+                           str(out)], env=env, capture_output=True, text=True,
+                          timeout=600)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    code, modules = json.loads(proc.stdout.strip().splitlines()[-1])
+    return code, frozenset(modules), out

@@ -1075,21 +1075,13 @@ def test_many_bags_name_a_single_file_output_without_its_suffix(sim_bag, tmp_pat
     assert not nowhere.exists()
 
 
-def test_a_run_makes_no_type_store(tmp_path):
+def test_a_run_makes_no_type_store(infer_in_a_fresh_process):
     """Every message `cloe infer` reads and writes has a lean codec (io/cdr.py) and a stored
     definition (io/msgdefs.py): a run never makes rosbags' type store, whose import and
     construction take about 0.15 s of CPU (EVALUATION.md, section 4). Checked on the modules the
     process imported, not on time."""
-    script = ('import sys\n'
-              'from cloe_ros.cli.main import main\n'
-              "code = main(['infer', '-q', sys.argv[1], '-o', sys.argv[2]])\n"
-              'made = [m for m in sys.modules if m.startswith("rosbags.typesys.stores")]\n'
-              'print(code, *made)')  # fmt: skip
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    out = tmp_path / 'out'
-    proc = subprocess.run([sys.executable, '-c', script, str(SAMPLES / 'position'), str(out)],
-                          env=env, capture_output=True, text=True, timeout=600)  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.split('\n')[-2].split() == ['0']  # (exit status 0, no store module)
+    code, modules, out = infer_in_a_fresh_process
+    assert code == 0
+    assert [m for m in modules if m.startswith('rosbags.typesys.stores')] == []
     with BagReader(out) as bag:  # and what it wrote reads back, every output topic there
         assert {'/cloe/state', '/cloe/parameter_labels', '/cloe/prediction'} <= set(bag.topics)

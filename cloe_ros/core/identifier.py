@@ -352,13 +352,20 @@ def filter_matrices(bandwidth: float, highpass: float, h: float):
 
     ``x+ = Ad x + Bd u``, ``F{u} = Cf x + Df u``, ``sF{u} = Cd x + Dd u`` (3 states).
     """
+    ad, bd, cd, dd = tustin(*filter_system(bandwidth, highpass), h)
+    return ad, bd[:, 0], cd[0], dd[0, 0], cd[1], dd[1, 0]
+
+
+def filter_system(bandwidth: float, highpass: float):
+    """The continuous ``(A, B, C, D)`` of ``F`` and ``sF`` that :func:`filter_matrices`
+    discretises: ``F = lam^2 s / den`` and ``sF = lam^2 s^2 / den``, with ``den = (s + lam)^2
+    (s + wh)`` (controllable canonical form, 3 states)."""
     lam, wh = bandwidth, highpass
     den = np.polymul(np.polymul([1.0, lam], [1.0, lam]), [1.0, wh])  # s^3 + a2 s^2 + a1 s + a0
     a = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-den[3], -den[2], -den[1]]])
     b = np.array([[0.0], [0.0], [1.0]])
     c = np.array([[0.0, lam**2, 0.0], [0.0, 0.0, lam**2]])  # lam^2 s / den, lam^2 s^2 / den
-    ad, bd, cd, dd = tustin(a, b, c, np.zeros((2, 1)), h)
-    return ad, bd[:, 0], cd[0], dd[0, 0], cd[1], dd[1, 0]
+    return a, b, c, np.zeros((2, 1))
 
 
 def tustin(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, h: float):

@@ -526,16 +526,13 @@ def test_the_filters_tustin_step_is_scipys_to_the_bit():
     random systems differently)."""
     from scipy.signal import cont2discrete
 
-    from cloe_ros.core.identifier import filter_matrices, tustin
+    from cloe_ros.core.identifier import filter_matrices, filter_system, tustin
 
     rng = np.random.default_rng(1)
     for _ in range(500):
         lam, wh = 10.0 ** rng.uniform(-1, 3), 10.0 ** rng.uniform(-3, 2)
         h = 1.0 / 10.0 ** rng.uniform(0.0, np.log10(2000.0))
-        den = np.polymul(np.polymul([1.0, lam], [1.0, lam]), [1.0, wh])
-        a = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-den[3], -den[2], -den[1]]])
-        b, c = np.array([[0.0], [0.0], [1.0]]), np.array([[0.0, lam**2, 0.0], [0.0, 0.0, lam**2]])
-        ad, bd, cd, dd = cont2discrete((a, b, c, np.zeros((2, 1))), h, method='bilinear')[:4]
+        ad, bd, cd, dd = cont2discrete(filter_system(lam, wh), h, method='bilinear')[:4]
         want = ad, bd[:, 0], cd[0], dd[0, 0], cd[1], dd[1, 0]
         for got, expected in zip(filter_matrices(lam, wh, h), want):
             np.testing.assert_array_equal(got, expected)

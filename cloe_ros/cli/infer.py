@@ -348,8 +348,7 @@ def _failed(err: BaseException, writer: BagWriter, output: Path) -> BaseExceptio
     """After ``err`` while writing ``output``: the output removed (an output cut short looks
     complete to the next tool), and the error to raise, saying so."""
     with uninterrupted():  # (a second Ctrl-C would leave it half removed)
-        writer.abort()
-        shutil.rmtree(output, ignore_errors=True)
+        writer.discard()
     if isinstance(err, WriterError) and err.path == output:  # the output's own failure
         reason = err.reason or writer.error or err
         return CliError(f'cannot write {output}: {reason}. No output written ({output} removed).')

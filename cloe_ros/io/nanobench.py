@@ -25,8 +25,9 @@ import numpy as np
 
 from cloe_ros.core.kinematics import euler_to_rotation, quaternion_to_euler, yaw_quaternion
 from cloe_ros.core.samples import OdometrySample, PoseSample
+from cloe_ros.interrupts import uninterrupted
 from cloe_ros.io import messages
-from cloe_ros.io.errors import BagError
+from cloe_ros.io.errors import BagError, WriterError
 from cloe_ros.io.writer import BagWriter
 
 #: Columns the conversion reads.
@@ -75,35 +76,56 @@ def convert_nanobench(csv_path: Path, output: Path, namespace: str = '') -> Conv
                            f'{", ".join(missing)}')  # fmt: skip
         if output.exists():
             raise BagError(f'{output} exists already, not overwriting.')
-        counts = Conversion(0, 0, 0)
-        flying = False
-        with BagWriter(output) as writer:
-            writer.add_topic(odom_topic, messages.ODOMETRY)
-            writer.add_topic(ref_topic, messages.POSE_STAMPED)
-            for line, row in enumerate(rows, start=2):
-                try:
-                    stamp = parse_stamp(row['t'])
-                    values = np.array([float(row[c]) for c in COLUMNS[1:]])
-                except (TypeError, ValueError) as err:
-                    raise BagError(f'{csv_path}, line {line}: {err}') from err
-                if not np.isfinite(values).all():
-                    counts.skipped += 1
-                    continue
-                pose, v_world, w_world = values[:7], values[7:10], values[10:13]
-                setpoint = values[13:]
-                q = pose[3:7] / np.linalg.norm(pose[3:7])
-                roll, pitch, yaw = quaternion_to_euler(q)
-                rotation = euler_to_rotation(roll, pitch, yaw)  # body -> world
-                odom = OdometrySample(
-                    stamp, 'world', 'base_link', pose[:3], q,
-                    rotation.T @ v_world, rotation.T @ w_world,
-                )  # fmt: skip
-                writer.write(odom_topic, stamp, messages.encode_odometry(odom))
-                counts.odometry += 1
-                flying = flying or bool(np.any(setpoint != 0.0))
-                if flying:
-                    ref = PoseSample(stamp, 'world', setpoint[:3],
-                                     yaw_quaternion(math.radians(setpoint[3])))  # fmt: skip
-                    writer.write(ref_topic, stamp, messages.encode_pose_stamped(ref))
-                    counts.references += 1
+        writer = BagWriter(output)
+        try:
+            counts = _write_flight(writer, rows, csv_path, odom_topic, ref_topic)
+            writer.close()
+        except BaseException as err:
+            # a bag cut short looks complete to the next tool: none is left
+            with uninterrupted():  # (a second Ctrl-C would leave it half removed)
+                writer.discard()
+            removed = f'No bag written ({output} removed).'
+            if isinstance(err, WriterError):
+                msg = f'cannot write {output}: {err.reason or err}. {removed}'
+                raise BagError(msg) from err
+            if isinstance(err, BagError):
+                raise BagError(f'{err} {removed}') from err
+            raise
+    return counts
+
+
+def _write_flight(writer: BagWriter, rows: csv.DictReader, csv_path: Path, odom_topic: str,
+                  ref_topic: str) -> Conversion:  # fmt: skip
+    """The rows of the NanoBench CSV ``rows`` as messages of ``writer``: odometry from every row
+    with finite values, references from take-off on."""
+    counts = Conversion(0, 0, 0)
+    flying = False
+    writer.add_topic(odom_topic, messages.ODOMETRY)
+    writer.add_topic(ref_topic, messages.POSE_STAMPED)
+    for line, row in enumerate(rows, start=2):
+        try:
+            stamp = parse_stamp(row['t'])
+            values = np.array([float(row[c]) for c in COLUMNS[1:]])
+        except (TypeError, ValueError) as err:
+            raise BagError(f'{csv_path}, line {line}: {err}') from err
+        if not np.isfinite(values).all():
+            counts.skipped += 1
+            continue
+        pose, v_world, w_world = values[:7], values[7:10], values[10:13]
+        setpoint = values[13:]
+        q = pose[3:7] / np.linalg.norm(pose[3:7])
+        roll, pitch, yaw = quaternion_to_euler(q)
+        rotation = euler_to_rotation(roll, pitch, yaw)  # body -> world
+        odom = OdometrySample(
+            stamp, 'world', 'base_link', pose[:3], q,
+            rotation.T @ v_world, rotation.T @ w_world,
+        )  # fmt: skip
+        writer.write(odom_topic, stamp, messages.encode_odometry(odom))
+        counts.odometry += 1
+        flying = flying or bool(np.any(setpoint != 0.0))
+        if flying:
+            ref = PoseSample(stamp, 'world', setpoint[:3],
+                             yaw_quaternion(math.radians(setpoint[3])))  # fmt: skip
+            writer.write(ref_topic, stamp, messages.encode_pose_stamped(ref))
+            counts.references += 1
     return counts

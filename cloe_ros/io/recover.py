@@ -30,7 +30,6 @@ section CRC (``DataEnd``) is checked too: it tells of damage outside the chunks'
 from __future__ import annotations
 
 import re
-import shutil
 import sys
 import zlib
 from collections.abc import Iterator
@@ -1100,8 +1099,7 @@ def recover_bag(
             raise RecoverError(_nothing_to_recover(bag, results, skipped, list(counts)))
         writer.close()
     except BaseException as err:
-        writer.abort()
-        shutil.rmtree(output, ignore_errors=True)
+        writer.discard()
         if isinstance(err, WriterError):
             msg = (
                 f'cannot write {output}: {err.reason or err}; nothing recovered ({output} removed)'

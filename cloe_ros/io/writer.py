@@ -22,6 +22,7 @@ No rclpy here: messages are raw CDR bytes, times are int nanoseconds.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
@@ -462,6 +463,14 @@ class BagWriter:
         the bag; idempotent, never raises."""
         self._closed = True
         self._close_file()
+
+    def discard(self) -> None:
+        """:meth:`abort`, then remove the bag (the directory this writer created): for a caller
+        whose output failed on the way, since a bag cut short looks complete to the next tool.
+        Idempotent, never raises; run it where Ctrl-C cannot cut it short
+        (:func:`~cloe_ros.interrupts.uninterrupted`)."""
+        self.abort()
+        shutil.rmtree(self.path, ignore_errors=True)
 
     def __enter__(self) -> BagWriter:
         return self

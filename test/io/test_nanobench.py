@@ -88,6 +88,19 @@ def test_what_cannot_be_converted_is_refused_by_name(tmp_path):
         convert_nanobench(good, tmp_path / 'exists')
 
 
+def test_a_conversion_that_fails_on_the_way_leaves_no_bag(tmp_path):
+    # 30 good rows, then one whose time is not a number: the rows before it were written
+    rows = [{'t': f'{0.01 * i:.2f}', 'qw': '1.0'} for i in range(30)] + [{'t': 'garbage'}]
+    bad = write_csv(tmp_path / 'bad.csv', rows)
+    out = tmp_path / 'out'
+    with pytest.raises(BagError, match=r'line 32: .*No bag written \(.*out removed\)'):
+        convert_nanobench(bad, out)
+    assert not out.exists()
+    good = write_csv(tmp_path / 'good.csv', rows[:30])  # (the same rows convert without it)
+    assert convert_nanobench(good, out).odometry == 30
+    assert len(read(out)['/odom']) == 30
+
+
 @pytest.mark.parametrize('flight', ['nanobench_B2_circle_medium_rep1',
                                     'nanobench_B3_figure8_medium_rep1'])  # fmt: skip
 def test_the_corpus_flights_are_rebuilt_from_their_csv(tmp_path, flight):

@@ -367,7 +367,7 @@ class InferenceNode(Node):
                 # identifier setting of cloe_iv changed (VehicleEngine.update_estimator)
                 engine.update_config(engine_config)
             if 'parameters_rate' in changed:
-                self.encoders[v] = OutputEncoder(output_config, v, self.encoders[v].predictions)
+                self._new_encoder(v, self.encoders[v].predictions)
         if restart:
             self.get_logger().info(
                 f'restarted the estimators: {engine_config.estimator.algorithm} at '
@@ -415,10 +415,16 @@ class InferenceNode(Node):
         if stats is not None:
             stats.resets += 1
         self.fleet.add(engine)  # (replacing the old engine, whose estimator leaves its pool)
-        self.encoders[vehicle] = OutputEncoder(
-            self.output_config, vehicle, self.engine_config.prediction.enabled
-        )
+        self._new_encoder(vehicle, self.engine_config.prediction.enabled)
         self.malformed.setdefault(vehicle, 0)
+
+    def _new_encoder(self, vehicle: str, predictions: bool) -> None:
+        """The output encoder of ``vehicle``, new (at its start, or for new settings). Where its
+        ``parameter_labels`` are latched already (:meth:`_latch_parameter_labels`), the new one
+        does not send them again: they are published once."""
+        encoder = self.encoders[vehicle] = OutputEncoder(self.output_config, vehicle, predictions)
+        if encoder.labels_topic in self.publishers_:
+            encoder.take_labels()
 
     def _namespace(self, vehicle: str) -> str:
         """The vehicle's namespace as a recording shows it ('/' for the root): what /diagnostics

@@ -557,6 +557,37 @@ def test_a_restart_for_a_new_algorithm_goes_on_counting_every_input(context, fli
         inf.destroy_node()
 
 
+def test_the_parameter_labels_are_published_once_whatever_changes(context, flight):
+    """``cloe/parameter_labels`` is latched once (README, docs/outputs.md): a change that makes
+    new output encoders (``parameters_rate``, a restart for a new algorithm) does not send it
+    again."""
+    inf = InferenceNode(context=context)
+    replica = VehicleEngine(inf.engine_config)
+    sent = {'labels': 0, 'parameters': 0}
+    encoder = inf.encoders['']
+    topics = {'labels': encoder.labels_topic, 'parameters': encoder.parameters_topic}
+    for what, topic in topics.items():
+        publisher = inf.publishers_[topic]
+
+        def counted(data, what=what, publish=publisher.publish):
+            sent[what] += 1
+            publish(data)
+
+        publisher.publish = counted
+    try:
+        _feed(inf, flight, range(50), replica)
+        for k, param in enumerate((Parameter('parameters_rate', value=20.0),
+                                   Parameter('algorithm', value='cloe_sm'))):  # fmt: skip
+            (result,) = inf.set_parameters([param])
+            assert result.successful, (param.name, result.reason)
+            before = sent['parameters']
+            _feed(inf, flight, range(50 + 100 * k, 150 + 100 * k), replica)
+            assert sent['parameters'] > before, param.name  # (new encoders at work)
+        assert sent['labels'] == 0  # (latched at the start, before the counters)
+    finally:
+        inf.destroy_node()
+
+
 def test_runtime_changes_keep_the_identified_model(context, flight):
     """cloe_iv (the default): a change that does not concern the identifier keeps its state and
     model; an identifier setting restarts the estimator (README, "The nodes")."""

@@ -161,11 +161,12 @@ def add_infer(sub: argparse._SubParsersAction) -> None:
             'Runs the same engine as the cloe_inference node over a rosbag2/MCAP bag: every '
             'vehicle with <ns>/odom (nav_msgs/Odometry) and <ns>/reference '
             '(geometry_msgs/PoseStamped) topics is inferred (with <ns>/reference_plan, '
-            'nav_msgs/Path, when present); other topics are ignored. Writes, under '
+            'nav_msgs/Path, when present); other topics are not inferred. Writes, under '
             '<ns>/<output_ns>/ (default output_ns: cloe), state, parameters, parameters_named, '
             'parameter_labels and, with predictions on, prediction, prediction_radius and '
-            'prediction_markers into the bag OUTPUT, with copies of the inputs so the output bag '
-            'is self-contained.'
+            'prediction_markers into the bag OUTPUT, with copies of the inputs (and of '
+            '<ns>/ground_truth and <ns>/true_parameters, when present) so the output bag is '
+            'self-contained.'
         ),
     )
     p.add_argument(

@@ -557,7 +557,9 @@ class VehicleEngine:
     # ------------------------------------------------------------------------------ steps
 
     def advance(self) -> list[Estimate]:
-        """Run every step whose inputs are complete; returns their estimates in time order."""
+        """Run every step whose inputs are complete, up to the first that fails numerically (the
+        estimator restarts on the next step's data, at the next call); returns their estimates in
+        time order."""
         out = self.take_pending()
         out.extend(self._run(force_reference=False))
         return out

@@ -237,8 +237,10 @@ class Fleet:
 
     def advance(self, names: Iterable[str] | None = None) -> dict[str, list[Estimate]]:
         """Run every step whose inputs are complete, of the vehicles ``names`` (default: all),
-        each grid step of all the vehicles due in one batched call per pool. Returns the
-        estimates per vehicle, in time order (vehicles with none are left out)."""
+        each grid step of all the vehicles due in one batched call per pool; a vehicle whose step
+        or prediction fails numerically stops there (its estimator restarts on the next step's
+        data, at the next call). Returns the estimates per vehicle, in time order (vehicles with
+        none are left out)."""
         engines = [self.engines[n] for n in (self.engines if names is None else names)]
         out = {engine.name: engine.take_pending() for engine in engines}
         while engines:

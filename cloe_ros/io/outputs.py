@@ -45,7 +45,7 @@ from cloe_ros.settings import check_fields, default
 
 #: Labels of ``cloe/parameters``: ``layout.dim[i].label`` names ``data[i]``. Theta_hat (16),
 #: L (12), the tilt couplings (2), then per identified row its excitation, relative uncertainty
-#: and status (0 not identifiable, 1 converging, 2 identified; NaN / -1 when the algorithm does not
+#: and status (0 not identifiable, 1 converging, 2 identified; -1 when the algorithm does not
 #: measure them), the status of the last prediction (0 withheld, 1 provisional, 2 identified), and
 #: the model the observer runs on and the predictions integrate (``model.theta.*`` (16),
 #: ``model.coupling.*`` (2); see :attr:`~cloe_ros.core.engine.Estimate.model`), and whether the

@@ -117,8 +117,9 @@ class BagWriter:
     Write failures (``OSError``: a full disk, an I/O error) are final: the first one leaves the
     file with a cut record, so the writer closes it at once without summary, drops the pending
     chunk and raises :class:`WriterError` (its ``reason`` is the operating system's words);
-    :attr:`error` then says why, every later call but :meth:`flush` (which does nothing) raises,
-    and :meth:`close` raises after marking the writer closed. :attr:`message_count` and
+    :attr:`error` then says why, every later call but :meth:`flush` (which does nothing),
+    :meth:`metadata`, :meth:`abort` and :meth:`discard` raises, and :meth:`close` raises after
+    marking the writer closed. :attr:`message_count` and
     :attr:`topic_counts` go back to the messages handed to the operating system before the
     failure, which ``cloe bag recover`` gets back. Nothing grows in memory after a failure.
 

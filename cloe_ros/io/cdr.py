@@ -266,6 +266,30 @@ def encode_string(text: str) -> bytes:
     return bytes(w.buf)
 
 
+def encode_diagnostic_array(stamp_ns: int, statuses: Sequence) -> bytes:
+    """CDR of a ``diagnostic_msgs/msg/DiagnosticArray`` (its header's frame empty) from
+    ``statuses``, each with ``level`` (a byte), ``name``, ``message``, ``hardware_id`` and
+    ``values`` (key, value pairs): :class:`~cloe_ros.io.messages.Status`."""
+    w = _Writer()
+    w.stamp(stamp_ns)
+    w.string('')
+    w.uint32(len(statuses))
+    for status in statuses:
+        level = int(status.level)
+        if not 0 <= level <= 255:
+            msg = f'a DiagnosticStatus level is a byte, got {level}'
+            raise MessageError(msg)
+        w.buf.append(level)  # (a byte: no alignment)
+        w.string(status.name)
+        w.string(status.message)
+        w.string(status.hardware_id)
+        w.uint32(len(status.values))
+        for key, value in status.values:
+            w.string(key)
+            w.string(value)
+    return bytes(w.buf)
+
+
 def encode_odometry(sample: OdometrySample) -> bytes:
     """CDR of a ``nav_msgs/msg/Odometry``; covariances default to zeros (unknown)."""
     w = _Writer()

@@ -269,25 +269,9 @@ class Status:
 
 
 def encode_diagnostics(stamp_ns: int, statuses: Sequence[Status]) -> bytes:
-    """CDR of a ``diagnostic_msgs/msg/DiagnosticArray``."""
-    store = typestore()
-    types = store.types
-    Header, KeyValue = types['std_msgs/msg/Header'], types['diagnostic_msgs/msg/KeyValue']
-    DiagnosticStatus = types['diagnostic_msgs/msg/DiagnosticStatus']
-    msg = types[DIAGNOSTIC_ARRAY](
-        header=Header(stamp=ns_to_time(stamp_ns), frame_id=''),
-        status=[
-            DiagnosticStatus(
-                level=int(s.level),
-                name=s.name,
-                message=s.message,
-                hardware_id=s.hardware_id,
-                values=[KeyValue(key=k, value=v) for k, v in s.values],
-            )
-            for s in statuses
-        ],
-    )
-    return bytes(store.serialize_cdr(msg, DIAGNOSTIC_ARRAY))
+    """CDR of a ``diagnostic_msgs/msg/DiagnosticArray`` (the lean codec's: rosbags' bytes, with
+    no type store, :func:`~cloe_ros.io.cdr.encode_diagnostic_array`)."""
+    return cdr.encode_diagnostic_array(stamp_ns, statuses)
 
 
 def decode_diagnostics(raw: bytes | memoryview) -> tuple[int, list[Status]]:

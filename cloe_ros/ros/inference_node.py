@@ -27,7 +27,6 @@ Per vehicle namespace ``<ns>`` (none for a single vehicle):
 from __future__ import annotations
 
 import functools
-import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -42,12 +41,11 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from cloe_ros.core import ahead
-from cloe_ros.core.anticipation import CHANNELS
 from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.fleet import Fleet
-from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
 from cloe_ros.io import messages
 from cloe_ros.io.config import DEFAULTS, SettingsError, build_configs, node_values
+from cloe_ros.io.diagnostics import Link, vehicle_status
 from cloe_ros.io.messages import MessageError, Status, encode_diagnostics
 from cloe_ros.io.outputs import OutputConfig, OutputEncoder
 from cloe_ros.ros.common import (
@@ -670,26 +668,6 @@ class InferenceNode(Node):
 
         return callback
 
-    def _identification_values(self, vehicle: str) -> list[tuple[str, str]]:
-        """The identifier's status (per row: excitation, uncertainty, status), the prediction's."""
-        last = self._last_estimate.get(vehicle)
-        if last is None:
-            return []
-        out = [('prediction', self._last_prediction_note.get(vehicle, 'none yet'))]
-        if last.identification is None:
-            out.append(('identifier', 'gradient (paper): identifiability not measured'))
-            return out
-        exc, unc, status = last.identification
-        for name, e, u, st in zip(ROW_NAMES, exc, unc, status):
-            out.append(
-                (
-                    f'identifier: {name}',
-                    f'{STATUS_NAMES[int(st)]} (excitation {e:.3f}, uncertainty '
-                    f'{f"{u:.1%}" if math.isfinite(u) else "not measured yet"})',
-                )
-            )
-        return out
-
     def _input(self, vehicle: str) -> None:
         """Vehicle ``vehicle`` has new input: step it now, or with the others at the next batch.
         Also publishes /diagnostics if a report is due (:meth:`_diagnostics_if_due`)."""
@@ -752,86 +730,30 @@ class InferenceNode(Node):
     # ------------------------------------------------------------------------ diagnostics
 
     def vehicle_status(self, vehicle: str, steps_per_s: float) -> Status:
-        engine = self.engines[vehicle]
-        s = engine.stats
-        rejected = sum(s.rejected.values()) + self.malformed[vehicle]
-        last = self._last_rejected.get(vehicle, '')
-        if not engine.started:
-            level, message = messages.WARN, 'waiting for odom and reference'
-            if rejected:
-                message += f'; {rejected} input(s) rejected, the last: {last}'
-        elif s.diverged:
-            level, message = messages.WARN, f'running; the estimator diverged {s.diverged} time(s)'
-        elif rejected:
-            level = messages.WARN
-            message = f'running; {rejected} input(s) rejected, the last: {last}'
-        else:
-            level, message = messages.OK, 'running'
-        lost = self.lost[vehicle]
-        if any(lost.values()):
-            level = max(level, messages.WARN)
-            message += '; lost in DDS: ' + ', '.join(f'{n} {k}' for k, n in lost.items() if n)
+        """``vehicle``'s status (:func:`~cloe_ros.io.diagnostics.vehicle_status`), with what DDS
+        says of its inputs: lost messages, publishers missing for ``publisher_timeout``, how
+        long its odometry has been silent."""
+        now = time.monotonic()
         missing = self._missing.get(vehicle, [])
         since = self._missing_since.get(vehicle)
-        if since is None or time.monotonic() - since < self.publisher_timeout:
+        words = ''
+        if since is None or now - since < self.publisher_timeout:
             missing = []  # (not for publisher_timeout yet: as the warning and the node's status)
         if missing:
-            level = max(level, messages.WARN)
             wrong = self._wrong_types(vehicle, missing)
-            message += (f'; {self._unpublished(vehicle, missing, wrong, topics=False)} for '
-                        f'{time.monotonic() - since:.0f} s')  # fmt: skip
+            words = (f'{self._unpublished(vehicle, missing, wrong, topics=False)} for '
+                     f'{now - since:.0f} s')  # fmt: skip
         heard = self._odom_heard.get(vehicle)
-        silent = None if heard is None else time.monotonic() - heard
-        if engine.started and silent is not None and silent > STALE_AFTER:
-            level = messages.WARN
-            message = f'{message}; no odometry for {silent:.1f} s'
-        note = self._last_prediction_note.get(vehicle, '')
-        if engine.started and note and not note.startswith('identified'):
-            message += f'; prediction {note}'
-        last = self._last_estimate.get(vehicle)
-        trust = None if last is None else last.trust
-        untracked = [] if trust is None else [
-            (c, why) for c, ok, why in zip(CHANNELS, trust.tracked, trust.reasons) if not ok]
-        if engine.started and untracked:
-            level = max(level, messages.WARN)
-            message += '; reference not tracked: ' + ', '.join(c for c, _ in untracked)
-        values = [
-            ('algorithm', engine.config.estimator.algorithm),
-            ('output_ns', self.output_config.output_ns),
-            *self._identification_values(vehicle),
-            ('reference', 'not decided yet' if trust is None else
-             'tracked' if not untracked else
-             'not tracked: ' + '; '.join(f'{c} ({why})' for c, why in untracked)),
-            ('untracked_steps', str(s.untracked_steps)),
-            ('rate_hz', f'{engine.config.rate:g}'),
-            ('prediction_phase', engine.config.prediction.phase),
-            ('odom_silent_s', '' if silent is None else f'{silent:.1f}'),
-            ('steps_per_s', f'{steps_per_s:.1f}'),
-            ('steps', str(s.steps)),
-            ('odom_received', str(s.odom_received)),
-            ('odom_accepted', str(s.odom_accepted)),
-            ('reference_received', str(s.reference_received)),
-            ('reference_accepted', str(s.reference_accepted)),
-            ('rejected', str(rejected)),
-            ('malformed', str(self.malformed[vehicle])),
-            *[(f'{name}_lost', str(n)) for name, n in lost.items()],
-            ('publishers_missing', ', '.join(missing)),
-            *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
-            ('time_jumps', str(s.time_jumps)),
-            ('odom_missing', str(s.odom_missing)),
-            ('position_jumps', str(s.position_jumps)),
-            ('frames_relearnt', str(s.frames_relearnt)),
-            ('resets', str(s.resets)),
-            ('diverged', str(s.diverged)),
-            ('error_norm', f'{s.last_error_norm:.6g}' if math.isfinite(s.last_error_norm)
-             else 'no step yet'),
-            ('last_stamp', '' if s.last_stamp_ns is None else f'{s.last_stamp_ns / NS:.3f}'),
-            ('predictions', str(s.predictions)),
-            ('predictions_withheld', str(s.predictions_withheld)),
-            ('plans_accepted', str(s.plans_accepted)),
-        ]
+        silent = None if heard is None else now - heard
+        link = Link(self.lost[vehicle], missing, words, silent, STALE_AFTER)
         ns = self.vehicle_ns[vehicle]
-        return Status(level, f'{self.get_name()}: {ns}', message, ns, tuple(values))
+        return vehicle_status(
+            f'{self.get_name()}: {ns}', ns, self.engines[vehicle], self.output_config.output_ns,
+            last=self._last_estimate.get(vehicle),
+            prediction_note=self._last_prediction_note.get(vehicle, ''),
+            malformed=self.malformed[vehicle], last_rejected=self._last_rejected.get(vehicle, ''),
+            steps_per_s=steps_per_s, link=link,
+        )  # fmt: skip
 
     def node_status(self) -> Status:
         """The node's own status: which vehicles it infers (its shard), those without

@@ -275,3 +275,30 @@ def test_a_string_is_rosbags_bytes(text):
                                          messages.STRING))  # fmt: skip
     assert messages.encode_string(text) == want
     assert messages.decode_string(want) == text
+
+
+@pytest.mark.parametrize('statuses', [
+    [],
+    [messages.Status(messages.OK, '', '', '', ())],
+    [messages.Status(messages.WARN, 'cloe_inference: /uav1', 'running; 2 input(s) rejected',
+                     '/uav1', (('algorithm', 'cloe_iv'), ('rejected: wrong frame', '2'),
+                               ('odom_silent_s', ''))),
+     messages.Status(messages.ERROR, 'nœud: /ü', 'ĉu ĝi funkcias? 飛行', 'x' * 7, (('k', 'v'),)),
+     messages.Status(messages.STALE, 'a', 'bc', 'def', ())],
+])  # fmt: skip
+def test_diagnostics_are_rosbags_bytes(statuses):
+    types = TYPESTORE.types
+    general = types[messages.DIAGNOSTIC_ARRAY](
+        header=types['std_msgs/msg/Header'](
+            stamp=types['builtin_interfaces/msg/Time'](sec=1_700_000_000, nanosec=123),
+            frame_id=''),
+        status=[types['diagnostic_msgs/msg/DiagnosticStatus'](
+            level=s.level, name=s.name, message=s.message, hardware_id=s.hardware_id,
+            values=[types['diagnostic_msgs/msg/KeyValue'](key=k, value=v) for k, v in s.values])
+            for s in statuses],
+    )  # fmt: skip
+    raw = messages.encode_diagnostics(1_700_000_000 * 10**9 + 123, statuses)
+    assert raw == bytes(TYPESTORE.serialize_cdr(general, messages.DIAGNOSTIC_ARRAY))
+    assert messages.decode_diagnostics(raw) == (1_700_000_000 * 10**9 + 123, statuses)
+    with pytest.raises(MessageError, match='level is a byte, got 256'):
+        messages.encode_diagnostics(0, [messages.Status(256, '', '', '', ())])

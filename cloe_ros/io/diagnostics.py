@@ -1,0 +1,147 @@
+"""A vehicle's ``/diagnostics`` status (``diagnostic_msgs/DiagnosticStatus``), shared by the node
+and ``cloe infer``: what its engine counted (inputs received, accepted and rejected, steps, time
+jumps, restarts), its identifier's status, its reference's and its predictions', and, from the
+node only, what DDS says of its inputs (:class:`Link`).
+
+The node reports every ``diagnostics_period`` of its clock (all its vehicles in one
+``DiagnosticArray``); ``cloe infer`` every ``diagnostics_period`` of message time, one array per
+vehicle, so that its outputs do not depend on how ``--jobs`` groups the vehicles.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from cloe_ros.core.anticipation import CHANNELS
+from cloe_ros.core.engine import NS, Estimate, VehicleEngine
+from cloe_ros.core.identifier import ROW_NAMES, STATUS_NAMES
+from cloe_ros.io.messages import OK, WARN, Status
+
+
+@dataclass
+class Link:
+    """What the node's DDS side knows of a vehicle's inputs (``cloe infer`` has none of it).
+
+    Attributes:
+        lost: Messages DDS reports lost per input topic (``message_lost``).
+        missing: The input topics without a publisher for ``publisher_timeout`` and more.
+        missing_words: What the message says of them (which, and for how long).
+        silent_s: Wall time since the last odometry message (None before the first).
+        stale_after: A started vehicle's odometry silent for longer than this, s, is a WARN.
+    """
+
+    lost: dict[str, int] = field(default_factory=dict)
+    missing: list[str] = field(default_factory=list)
+    missing_words: str = ''
+    silent_s: float | None = None
+    stale_after: float = 2.0
+
+
+def identification_values(
+    last: Estimate | None, prediction_note: str
+) -> list[tuple[str, str]]:
+    """The identifier's status (per row: excitation, uncertainty, status) and the prediction's,
+    from the vehicle's last estimate ``last`` (none before its first)."""
+    if last is None:
+        return []
+    out = [('prediction', prediction_note or 'none yet')]
+    if last.identification is None:
+        out.append(('identifier', 'gradient (paper): identifiability not measured'))
+        return out
+    exc, unc, status = last.identification
+    for name, e, u, st in zip(ROW_NAMES, exc, unc, status):
+        out.append(
+            (
+                f'identifier: {name}',
+                f'{STATUS_NAMES[int(st)]} (excitation {e:.3f}, uncertainty '
+                f'{f"{u:.1%}" if math.isfinite(u) else "not measured yet"})',
+            )
+        )
+    return out
+
+
+def vehicle_status(
+    name: str, namespace: str, engine: VehicleEngine, output_ns: str, *,
+    last: Estimate | None, prediction_note: str, malformed: int, last_rejected: str,
+    steps_per_s: float, link: Link | None = None,
+) -> Status:  # fmt: skip
+    """The status of the vehicle whose engine is ``engine``, named ``name``, with hardware id
+    its ``namespace``: OK while it runs with nothing to say, WARN before it starts, after
+    rejected inputs (``malformed`` undecodable ones among them, ``last_rejected`` the last's
+    description), a divergence, a reference it does not track, and (``link``) inputs lost in
+    DDS, without publishers or silent for ``link.stale_after``. ``last`` is its last estimate,
+    ``prediction_note`` what its last prediction said, ``steps_per_s`` its recent step rate."""
+    s = engine.stats
+    rejected = sum(s.rejected.values()) + malformed
+    if not engine.started:
+        level, message = WARN, 'waiting for odom and reference'
+        if rejected:
+            message += f'; {rejected} input(s) rejected, the last: {last_rejected}'
+    elif s.diverged:
+        level, message = WARN, f'running; the estimator diverged {s.diverged} time(s)'
+    elif rejected:
+        level = WARN
+        message = f'running; {rejected} input(s) rejected, the last: {last_rejected}'
+    else:
+        level, message = OK, 'running'
+    link_values: list[tuple[str, str]] = []
+    if link is not None:
+        if any(link.lost.values()):
+            level = max(level, WARN)
+            message += '; lost in DDS: ' + ', '.join(
+                f'{n} {k}' for k, n in link.lost.items() if n)
+        if link.missing:
+            level = max(level, WARN)
+            message += f'; {link.missing_words}'
+        if engine.started and link.silent_s is not None and link.silent_s > link.stale_after:
+            level = WARN
+            message = f'{message}; no odometry for {link.silent_s:.1f} s'
+    if engine.started and prediction_note and not prediction_note.startswith('identified'):
+        message += f'; prediction {prediction_note}'
+    trust = None if last is None else last.trust
+    untracked = [] if trust is None else [
+        (c, why) for c, ok, why in zip(CHANNELS, trust.tracked, trust.reasons) if not ok]
+    if engine.started and untracked:
+        level = max(level, WARN)
+        message += '; reference not tracked: ' + ', '.join(c for c, _ in untracked)
+    if link is not None:
+        link_values = [
+            ('odom_silent_s', '' if link.silent_s is None else f'{link.silent_s:.1f}'),
+        ]
+    values = [
+        ('algorithm', engine.config.estimator.algorithm),
+        ('output_ns', output_ns),
+        *identification_values(last, prediction_note),
+        ('reference', 'not decided yet' if trust is None else
+         'tracked' if not untracked else
+         'not tracked: ' + '; '.join(f'{c} ({why})' for c, why in untracked)),
+        ('untracked_steps', str(s.untracked_steps)),
+        ('rate_hz', f'{engine.config.rate:g}'),
+        ('prediction_phase', engine.config.prediction.phase),
+        *link_values,
+        ('steps_per_s', f'{steps_per_s:.1f}'),
+        ('steps', str(s.steps)),
+        ('odom_received', str(s.odom_received)),
+        ('odom_accepted', str(s.odom_accepted)),
+        ('reference_received', str(s.reference_received)),
+        ('reference_accepted', str(s.reference_accepted)),
+        ('rejected', str(rejected)),
+        ('malformed', str(malformed)),
+        *([] if link is None else [(f'{k}_lost', str(n)) for k, n in link.lost.items()]),
+        *([] if link is None else [('publishers_missing', ', '.join(link.missing))]),
+        *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
+        ('time_jumps', str(s.time_jumps)),
+        ('odom_missing', str(s.odom_missing)),
+        ('position_jumps', str(s.position_jumps)),
+        ('frames_relearnt', str(s.frames_relearnt)),
+        ('resets', str(s.resets)),
+        ('diverged', str(s.diverged)),
+        ('error_norm', f'{s.last_error_norm:.6g}' if math.isfinite(s.last_error_norm)
+         else 'no step yet'),
+        ('last_stamp', '' if s.last_stamp_ns is None else f'{s.last_stamp_ns / NS:.3f}'),
+        ('predictions', str(s.predictions)),
+        ('predictions_withheld', str(s.predictions_withheld)),
+        ('plans_accepted', str(s.plans_accepted)),
+    ]
+    return Status(level, name, message, namespace, tuple(values))

@@ -136,17 +136,20 @@ def copy_bag(
     source: Path, target: Path, extra: Iterable[tuple[str, str, list[tuple[int, bytes]]]] = ()
 ) -> Path:
     """Copy every message of ``source`` (and its metadata's ``custom_data``) into a new bag
-    ``target``, adding ``extra`` topics given as ``(name, msgtype, [(log_time_ns, cdr), ...])``."""
+    ``target``, adding ``extra`` topics given as ``(name, msgtype, [(log_time_ns, cdr), ...])``
+    (one the source has too replaces the source's)."""
     records: list[tuple[int, str, bytes]] = []
+    replaced = {name for name, _, _ in extra}
     with BagReader(source) as reader, BagWriter(target) as writer:
         for key, value in reader.custom_data.items():
             writer.set_custom_data(key, value)
-        for name, info in reader.topics.items():
-            writer.add_topic(name, info.msgtype)
+        kept = [name for name in reader.topics if name not in replaced]
+        for name in kept:
+            writer.add_topic(name, reader.topics[name].msgtype)
         for name, msgtype, msgs in extra:
             writer.add_topic(name, msgtype)
             records += [(t, name, raw) for t, raw in msgs]
-        records += [(t, topic, bytes(raw)) for topic, t, raw in reader.messages()]
+        records += [(t, topic, bytes(raw)) for topic, t, raw in reader.messages(kept)]
         for t, topic, raw in sorted(records, key=lambda r: r[0]):
             writer.write(topic, t, raw)
     return target

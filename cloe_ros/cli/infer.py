@@ -33,11 +33,13 @@ from cloe_ros.core.fleet import Fleet, RecordingBatches
 from cloe_ros.errors import CloeError
 from cloe_ros.interrupts import uninterrupted
 from cloe_ros.io import messages
-from cloe_ros.io.config import build_configs, command_settings
+from cloe_ros.io.config import NODE_NAME, build_configs, command_settings
 from cloe_ros.io.dataset import ODOM, PLAN, REFERENCE, feed, input_routes
+from cloe_ros.io.diagnostics import DIAGNOSTICS_TOPIC, OfflineReports
 from cloe_ros.io.outputs import LATCHED_QOS, OutputEncoder
 from cloe_ros.io.reader import BagError, BagReader
 from cloe_ros.io.writer import BagWriter, WriterError
+from cloe_ros.settings import default
 
 #: Input topics copied into the output bag (under each vehicle namespace) so it stands alone.
 COPIED = (ODOM, REFERENCE, PLAN, 'ground_truth', 'true_parameters')
@@ -61,6 +63,11 @@ class InferResult:
     #: namespaces of the bag with an odom or reference topic but no usable pair, and why (not
     #: inferred; the others are): a ``warning:`` line each
     skipped: list[str] = field(default_factory=list)
+    #: per vehicle, the first input rejected for each reason, described (what was wrong), with
+    #: the log time of its message where known and how many there were, and the world frame
+    #: learnt again: a ``warning:`` line each
+    first_rejected: dict[str, dict[str, tuple[str, int | None, int]]] = field(
+        default_factory=dict)
 
 
 def check_inputs(topics: dict[str, str], path: Path) -> list[str]:
@@ -117,11 +124,13 @@ def infer_bag(
     compression: str = 'zstd',
     progress=None,
     jobs: int = 1,
+    node: str = NODE_NAME,
 ) -> InferResult:
     """Run the engine of every vehicle over ``bag`` (of ``vehicles``: default all) and write the
     outputs to ``output``: in this process, or with the vehicles in ``jobs`` groups (0: one per
     core; never more groups than vehicles), each run in a process of its own that sends its
-    outputs here, where they are written beside the copies of the inputs (:func:`_split`)."""
+    outputs here, where they are written beside the copies of the inputs (:func:`_split`).
+    ``node``: the node whose run this reproduces, which names the ``/diagnostics`` statuses."""
     engine_config, output_config = build_configs(settings)
     start = time.monotonic()
     with BagReader(bag) as reader:
@@ -143,10 +152,12 @@ def infer_bag(
 
                 if count == 1:
                     engines = _engines(found, engine_config)
+                    reports = _reports(node, settings, output_config)
                     stats = _run(reader, bag, engines, encoders, engine_config, write, copies,
-                                 progress)  # fmt: skip
+                                 progress, reports)  # fmt: skip
                 else:
-                    stats = _split(reader, bag, settings, found, count, write, copies, progress)
+                    stats = _split(reader, bag, settings, found, count, write, copies, progress,
+                                   node)  # fmt: skip
                 if len(stats['unusable']) == len(found):
                     raise CliError('; '.join(stats['unusable'].values()) + '.')
         except BaseException as err:
@@ -159,7 +170,7 @@ def infer_bag(
                        **stats)  # fmt: skip
 
 
-def _split(reader, bag, settings, found, count, write, copies, progress) -> dict:
+def _split(reader, bag, settings, found, count, write, copies, progress, node) -> dict:
     """:func:`_run` of the vehicles ``found`` in ``count`` > 1 groups, each in a forked worker
     (:func:`_run_group`) whose outputs go to ``write`` here, while this process hands it the
     messages of the topics ``copies``; the statistics of all the groups, in ``found``'s order."""
@@ -168,7 +179,8 @@ def _split(reader, bag, settings, found, count, write, copies, progress) -> dict
     # forked workers inherit the engine's modules, loaded kernels and the settings checked
     ctx = multiprocessing.get_context('fork')
     queue = ctx.Queue(maxsize=4 * count)
-    workers = [ctx.Process(target=_run_group, args=(bag, settings, group, queue, i), daemon=True)
+    workers = [ctx.Process(target=_run_group, args=(bag, settings, group, queue, i, node),
+                           daemon=True)
                for i, group in enumerate(groups)]  # fmt: skip
     done: dict[int, dict] = {}
     fractions = [0.0] * count
@@ -225,7 +237,8 @@ def _split(reader, bag, settings, found, count, write, copies, progress) -> dict
             for key in done[0]}  # fmt: skip
 
 
-def _run_group(bag: Path, settings: dict, group: list[str], queue, index: int) -> None:
+def _run_group(bag: Path, settings: dict, group: list[str], queue, index: int,
+               node: str) -> None:  # fmt: skip
     """A worker of :func:`_split`: the engines of ``group`` over ``bag``; puts on
     ``queue`` ``(index, kind, payload)``: ``'out'`` and a list of ``(topic, stamp, cdr)``,
     ``'progress'`` and a fraction, then ``'done'`` and the run's statistics, or ``'error'`` and
@@ -245,14 +258,22 @@ def _run_group(bag: Path, settings: dict, group: list[str], queue, index: int) -
         def progress(_label, fraction):
             queue.put((index, 'progress', fraction))
 
+        reports = _reports(node, settings, output_config)
         with BagReader(bag) as reader:
-            stats = _run(reader, bag, engines, encoders, engine_config, write, [], progress)
+            stats = _run(reader, bag, engines, encoders, engine_config, write, [], progress,
+                         reports)  # fmt: skip
         queue.put((index, 'out', out))
         queue.put((index, 'done', stats))
     except (CloeError, BagError) as err:
         queue.put((index, 'error', str(err)))
     except BaseException as err:  # (whatever it is, the parent says it and removes the output)
         queue.put((index, 'error', f'{bag}: {type(err).__name__}: {err}'))
+
+
+def _reports(node: str, settings: dict, output_config) -> OfflineReports:
+    """The ``/diagnostics`` of a run reproducing the node ``node`` with ``settings``."""
+    period = settings.get('diagnostics_period', default('diagnostics_period'))
+    return OfflineReports(node.rsplit('/', 1)[-1], period, output_config.output_ns)
 
 
 def _encoder(vehicle: str, engine_config, output_config) -> OutputEncoder:
@@ -284,18 +305,22 @@ def _add_topics(writer, reader, copies, encoders, engine_config, output_config) 
     for enc in encoders.values():
         for topic, msgtype in enc.topics.items():
             writer.add_topic(topic, msgtype, [LATCHED_QOS] if topic in enc.latched_topics else ())
+    writer.add_topic(DIAGNOSTICS_TOPIC, messages.DIAGNOSTIC_ARRAY)
 
 
-def _run(reader, bag, engines, encoders, engine_config, write, copies, progress) -> dict:
+def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
+         reports: OfflineReports) -> dict:  # fmt: skip
     """The ``engines`` over the open ``reader``, in recording order and in batches (a grid step
-    of recording time each: :class:`RecordingBatches`); every output, and every message of the
-    topics ``copies``, handed to ``write(topic, stamp, cdr)``. Returns the run's statistics per
-    vehicle (:class:`InferResult`'s steps, rejected, malformed, time_jumps, unusable)."""
+    of recording time each: :class:`RecordingBatches`); every output, the ``/diagnostics`` of
+    ``reports``, and every message of the topics ``copies``, handed to ``write(topic, stamp,
+    cdr)``. Returns the run's statistics per vehicle (:class:`InferResult`'s steps, rejected,
+    malformed, time_jumps, unusable, first_rejected)."""
     found = list(engines)
     topics = {name: info.msgtype for name, info in reader.topics.items()}
     route = input_routes(topics, found)
     batches = RecordingBatches(next(iter(engines.values())).fleet, engine_config.step_ns)
     malformed = {v: 0 for v in found}
+    last_input = {v: reader.end_ns for v in found}
     received: Counter = Counter()
     span = max(reader.end_ns - reader.start_ns, 1)
     copied = set(copies)
@@ -306,6 +331,9 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress)
             for topic, stamp, data in enc.encode(est, engine.world_frame or '',
                                                  engine.child_frame):  # fmt: skip
                 write(topic, stamp, data)
+        for report in reports.reports(vehicle, vehicle or '/', engine, estimates,
+                                      malformed[vehicle]):  # fmt: skip
+            write(*report)
 
     def emit_all(estimates):
         for v, of_vehicle in estimates.items():
@@ -321,11 +349,16 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress)
         received[topic] += 1
         vehicle, kind = target
         emit_all(batches.before(log_ns))
+        last_input[vehicle] = log_ns
         try:
             feed(engines[vehicle], kind, raw)
-        except messages.MessageError:
+        except messages.MessageError as err:
             malformed[vehicle] += 1
+            reports.rejected(vehicle, [f'malformed {kind}: {err}'], log_ns)
             continue
+        rejections = engines[vehicle].take_rejections()
+        if rejections:
+            reports.rejected(vehicle, [r.describe() for r in rejections], log_ns)
         batches.fed(vehicle, log_ns)
         count += 1
         if progress is not None and count % 500 == 0:
@@ -333,6 +366,8 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress)
     emit_all(batches.flush())
     for v in found:
         emit(v, engines[v].finish())
+        reports.rejected(v, [r.describe() for r in engines[v].take_rejections()])
+        write(*reports.final(v, v or '/', engines[v], last_input[v], malformed[v]))
     unusable = {v: _unusable(bag, v, engines[v], malformed[v], received)
                 for v in found if engines[v].stats.steps == 0}  # fmt: skip
     return {
@@ -341,6 +376,7 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress)
         'malformed': malformed,
         'time_jumps': {v: e.stats.time_jumps for v, e in engines.items()},
         'unusable': unusable,
+        'first_rejected': {v: reports.first_rejected.get(v, {}) for v in found},
     }
 
 
@@ -406,8 +442,9 @@ def _unusable(bag: Path, vehicle: str, engine: VehicleEngine, malformed: int, re
 
 def _print(result: InferResult, output: Path) -> None:
     """What ``cloe infer`` prints of a run: per vehicle, what was written, and a warning per
-    vehicle that gave no estimate and per namespace not inferred (no usable odom/reference
-    pair)."""
+    vehicle and reason of the first input rejected (when, and what was wrong: as the node logs
+    it), per world frame learnt again, per vehicle that gave no estimate and per namespace not
+    inferred (no usable odom/reference pair)."""
     for v in result.vehicles:
         rejected = sum(result.rejected[v].values()) + result.malformed[v]
         detail = ', '.join(f'{k}: {n}' for k, n in sorted(result.rejected[v].items()))
@@ -424,6 +461,17 @@ def _print(result: InferResult, output: Path) -> None:
         f'{result.duration_s:.1f} s of recording (first to last message of the bag) in '
         f'{result.wall_s:.2f} s ({1000 * per_second:.1f} ms per second of recording)'
     )
+    for v in result.vehicles:
+        for reason, (first, log_ns, count) in result.first_rejected.get(v, {}).items():
+            if reason in result.rejected[v] or reason.startswith('malformed'):
+                text = f'rejected input ({first})'
+            else:
+                text = first  # (not a rejection: the world frame learnt again)
+            if log_ns is not None:
+                text += f', the message logged at {log_ns / NS:.3f} s'
+            if count > 1:
+                text += f'; {count - 1} more for that reason'
+            print(f'warning: {v or "/"}: {text}', file=sys.stderr)
     for why in result.unusable.values():
         print(f'warning: {why}', file=sys.stderr)
     for why in result.skipped:
@@ -440,7 +488,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = infer_bag(
             args.bag[0], args.output, settings, args.vehicles, not args.no_inputs,
-            args.compression, bar, args.jobs,
+            args.compression, bar, args.jobs, args.node,
         )  # fmt: skip
     except BagError as err:
         raise CliError(str(err)) from err
@@ -476,12 +524,12 @@ def _infer_one(job: tuple) -> tuple[InferResult | None, str]:
     """One bag of ``cloe infer BAG...``, in a worker process: (result, ''), (None, why), or
     (None, '') when the run was interrupted before or while this bag was inferred (its output is
     not written)."""
-    bag, output, settings, vehicles, copy_inputs, compression = job
+    bag, output, settings, vehicles, copy_inputs, compression, node = job
     if _stop is not None and _stop.is_set():
         return None, ''
     try:
         return infer_bag(bag, output, settings, vehicles, copy_inputs, compression,
-                         _stop_when_asked), ''  # fmt: skip
+                         _stop_when_asked, node=node), ''  # fmt: skip
     except (CloeError, BagError) as err:
         return None, str(err)
     except KeyboardInterrupt:
@@ -503,7 +551,8 @@ def _run_many(args: argparse.Namespace, settings: dict) -> int:
     created = not out.exists()
     make_folder(out)
     jobs = worker_count(args.jobs, len(args.bag))
-    work = [(bag, out / name, settings, args.vehicles, not args.no_inputs, args.compression)
+    work = [(bag, out / name, settings, args.vehicles, not args.no_inputs, args.compression,
+             args.node)
             for bag, name in zip(args.bag, names)]  # fmt: skip
     failed = []
     stop = multiprocessing.get_context().Event()

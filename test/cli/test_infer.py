@@ -30,6 +30,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from cloe_ros.cli.main import main
 from cloe_ros.core.fleet import EstimatorPool
+from cloe_ros.core.identifier import ROW_NAMES
 from cloe_ros.core.model import unstable_blocks
 from cloe_ros.core.samples import PoseSample
 from cloe_ros.io import cdr, messages
@@ -377,6 +378,15 @@ def test_an_absurd_reference_is_a_counted_rejection(sim_bag, tmp_path, capsys):
     assert status == 0 and 'Traceback' not in err, err
     assert '/: 1501 steps, 1 input(s) rejected (reference position beyond 100000 m: 1)' in out
     assert len(decoded(tmp_path / 'out', '/cloe/state')) == 1501
+    # where it was and what was wrong, in a warning and in the bag's /diagnostics (the node's)
+    assert re.search(r'^warning: /: rejected input \(reference position beyond 100000 m: '
+                     r'[^)]*1e\+200[^)]*\), the message logged at \d+\.\d{3} s$', err,
+                     re.M), err  # fmt: skip
+    (status,) = decoded(tmp_path / 'out', '/diagnostics')[-1].status
+    assert status.level == 1 and status.message.startswith(
+        'running; 1 input(s) rejected, the last: reference position beyond 100000 m: ')
+    assert {kv.key: kv.value for kv in status.values}[
+        'rejected: reference position beyond 100000 m'] == '1'
 
 
 # -- outputs ------------------------------------------------------------------------------------
@@ -411,7 +421,7 @@ def test_outputs_of_the_contract(inferred):
               if t in ('/odom', '/reference', '/ground_truth', '/true_parameters')}  # fmt: skip
     outputs = {'/cloe/state', '/cloe/parameters', '/cloe/prediction', '/cloe/prediction_radius',
                '/cloe/prediction_markers', '/cloe/parameters_named',
-               '/cloe/parameter_labels'}  # fmt: skip
+               '/cloe/parameter_labels', '/diagnostics'}  # fmt: skip
     assert set(counts) == outputs | set(copied)
     for topic, n in copied.items():
         assert counts[topic] == n, topic
@@ -498,6 +508,29 @@ def test_outputs_of_the_contract(inferred):
             at = [sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z]
             np.testing.assert_allclose(at, [pose.x, pose.y, pose.z], rtol=0, atol=1e-12)
             assert sphere.scale.x == pytest.approx(2.0 * rows[k, 1])
+
+    # /diagnostics: the node's status of the vehicle when an estimate enters a new second of
+    # message time (diagnostics_period), and once more at the last estimate
+    reports = decoded(out, '/diagnostics')
+    stamps = [stamp(r.header) for r in reports]
+    seconds = {s // NS for s in t}
+    assert len(reports) == len(seconds) + 1 == counts['/diagnostics']
+    assert sorted({s // NS for s in stamps}) == sorted(seconds) and stamps == sorted(stamps)
+    assert stamps[0] == t[0] and stamps[-1] == t[-1]  # (the first estimate's, the last's)
+    for report in reports:
+        (status,) = report.status
+        assert (status.name, status.hardware_id) == ('cloe_inference: /', '/')
+        # (nothing rejected: WARN only for a reference not tracked, as the node says it)
+        assert status.message.startswith('running') and 'rejected' not in status.message
+        assert (status.level == 1) == ('reference not tracked' in status.message), status
+        assert status.level in (0, 1)
+    last = {kv.key: kv.value for kv in reports[-1].status[0].values}
+    assert last['algorithm'] == 'cloe_iv' and last['steps'] == str(steps)
+    assert last['odom_accepted'] == str(counts['/odom']) and last['rejected'] == '0'
+    assert last['last_stamp'] == f'{t[-1] / NS:.3f}' and 'odom_silent_s' not in last
+    assert float(last['steps_per_s']) == pytest.approx(100.0, abs=1.0)
+    assert [k for k in last if k.startswith('identifier: ')] == [
+        f'identifier: {row}' for row in ROW_NAMES]
 
 
 @pytest.mark.slow
@@ -679,16 +712,23 @@ def test_config_option(sim_bag, tmp_path, capsys):
         '    output_ns: inferred\n'
         '    prediction_horizon: 0.0\n'
         '    parameters_rate: 2.0\n'
+        '    diagnostics_period: 5.0\n'
     )
     out = tmp_path / 'out'
     status, _, err = run_infer(capsys, sim_bag, '-o', out, '-q', '--config', config)
     assert status == 0, err
     counts = topic_counts(out)
     assert set(counts) == {'/inferred/state', '/inferred/parameters', '/inferred/parameter_labels',
-                           '/inferred/parameters_named', '/odom', '/reference', '/ground_truth',
-                           '/true_parameters'}  # fmt: skip
+                           '/inferred/parameters_named', '/diagnostics', '/odom', '/reference',
+                           '/ground_truth', '/true_parameters'}  # fmt: skip
     t, _, _ = odometry_arrays(decoded(out, '/inferred/state'))
     assert len(t) == 301 and np.all(np.diff(t) == 5 * STEP_NS)
+    # /diagnostics every 5 s of message time, and at the last estimate
+    assert counts['/diagnostics'] == len({s // (5 * NS) for s in t}) + 1
+    (status,) = decoded(out, '/diagnostics')[-1].status
+    values = {kv.key: kv.value for kv in status.values}
+    assert (values['algorithm'], values['rate_hz'], values['steps']) == ('cloe', '20', '301')
+    assert float(values['steps_per_s']) == pytest.approx(20.0, abs=0.5)
     assert counts['/inferred/parameters'] == 31  # every 0.5 s of the 15 s, both ends
     assert counts['/inferred/parameters_named'] == 31 and counts['/inferred/parameter_labels'] == 1
     assert (labelled(last_parameters(out, '/inferred/parameters'), 'status.') == -1).all()
@@ -798,9 +838,17 @@ def test_one_vehicle_without_usable_input_is_a_warning(sim_bag, tmp_path, capsys
     assert status == 0, err
     assert '/uav1: 1501 steps' in out
     assert err == (
+        'warning: /uav2: rejected input (malformed odom: cannot decode 4 bytes as '
+        'nav_msgs/msg/Odometry: truncated at byte 4 (needs 8 more)), the message logged at '
+        '1700000000.000 s; 1500 more for that reason\n'
         f'warning: {bag}: no usable input for vehicle /uav2: 1501 message(s) on /uav2/odom and '
         '751 on /uav2/reference gave 0 estimator steps (rejected: malformed: 1501)\n'
     )
+    # the bag's /diagnostics say the same of /uav2, at its last input (it gave no estimate)
+    (uav2,) = [r.status[0] for r in decoded(tmp_path / 'out', '/diagnostics')
+               if r.status[0].hardware_id == '/uav2']  # fmt: skip
+    assert uav2.level == 1 and uav2.message.startswith(
+        'waiting for odom and reference; 1501 input(s) rejected, the last: malformed odom: ')
 
 
 def test_a_full_disk_gives_one_coherent_error(sim_bag, tmp_path, capsys, monkeypatch):

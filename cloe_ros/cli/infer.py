@@ -320,7 +320,7 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
     route = input_routes(topics, found)
     batches = RecordingBatches(next(iter(engines.values())).fleet, engine_config.step_ns)
     malformed = {v: 0 for v in found}
-    last_input = {v: reader.end_ns for v in found}
+    last_input = {v: reader.start_ns for v in found}
     received: Counter = Counter()
     span = max(reader.end_ns - reader.start_ns, 1)
     copied = set(copies)
@@ -331,9 +331,14 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
             for topic, stamp, data in enc.encode(est, engine.world_frame or '',
                                                  engine.child_frame):  # fmt: skip
                 write(topic, stamp, data)
-        for report in reports.reports(vehicle, vehicle or '/', engine, estimates,
-                                      malformed[vehicle]):  # fmt: skip
-            write(*report)
+        reports.estimates(vehicle, estimates)
+
+    def report(vehicle, log_ns):
+        """The vehicle's status at ``log_ns``, after the steps its inputs so far allow (as
+        many whichever vehicles share its batches)."""
+        emit_all(batches.fleet.advance([vehicle]))
+        write(*reports.report(vehicle, vehicle or '/', engines[vehicle], log_ns,
+                              malformed[vehicle]))  # fmt: skip
 
     def emit_all(estimates):
         for v, of_vehicle in estimates.items():
@@ -349,16 +354,18 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
         received[topic] += 1
         vehicle, kind = target
         emit_all(batches.before(log_ns))
+        if reports.due(vehicle, log_ns):
+            report(vehicle, log_ns)
         last_input[vehicle] = log_ns
         try:
-            feed(engines[vehicle], kind, raw)
+            _, own = feed(engines[vehicle], kind, raw)
         except messages.MessageError as err:
             malformed[vehicle] += 1
             reports.rejected(vehicle, [f'malformed {kind}: {err}'], log_ns)
             continue
-        rejections = engines[vehicle].take_rejections()
-        if rejections:
-            reports.rejected(vehicle, [r.describe() for r in rejections], log_ns)
+        for r in engines[vehicle].take_rejections():
+            # (a held input found an outlier by this one: its own message's time is not known)
+            reports.rejected(vehicle, [r.describe()], log_ns if r is own else None)
         batches.fed(vehicle, log_ns)
         count += 1
         if progress is not None and count % 500 == 0:
@@ -367,7 +374,7 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
     for v in found:
         emit(v, engines[v].finish())
         reports.rejected(v, [r.describe() for r in engines[v].take_rejections()])
-        write(*reports.final(v, v or '/', engines[v], last_input[v], malformed[v]))
+        report(v, last_input[v])  # (the last: after its last input)
     unusable = {v: _unusable(bag, v, engines[v], malformed[v], received)
                 for v in found if engines[v].stats.steps == 0}  # fmt: skip
     return {

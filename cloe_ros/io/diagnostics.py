@@ -4,8 +4,9 @@ jumps, restarts), its identifier's status, its reference's and its predictions',
 node only, what DDS says of its inputs (:class:`Link`).
 
 The node reports every ``diagnostics_period`` of its clock (all its vehicles in one
-``DiagnosticArray``); ``cloe infer`` every ``diagnostics_period`` of message time, one array per
-vehicle, so that its outputs do not depend on how ``--jobs`` groups the vehicles.
+``DiagnosticArray``); ``cloe infer`` every ``diagnostics_period`` of recording time, one array
+per vehicle, so that its outputs do not depend on how ``--jobs`` groups the vehicles
+(:class:`OfflineReports`).
 """
 
 from __future__ import annotations
@@ -151,31 +152,34 @@ def vehicle_status(
 
 
 class OfflineReports:
-    """``/diagnostics`` of ``cloe infer``: per vehicle, its status every ``period_s`` of message
-    time (when an estimate's stamp enters a new period, as ``cloe/parameters``), and a last one
-    when the bag ends, each a ``DiagnosticArray`` of that vehicle alone, stamped with its
-    estimate's time. The statuses are the node's (:func:`vehicle_status`, named ``<node>:
-    <namespace>``), without what only DDS knows; ``steps_per_s`` counts steps per second of
-    message time. Also keeps, per vehicle, the first input rejected for each reason (with its
-    stamp and what was wrong), which ``cloe infer`` prints as the node logs them."""
+    """``/diagnostics`` of ``cloe infer``: per vehicle, its status when one of its inputs enters
+    a new ``period_s`` of recording time (log time), as the inputs before it left it, and a last
+    one after its last input, each a ``DiagnosticArray`` of that vehicle alone, stamped (and
+    logged) with that input's log time. The caller runs the vehicle's steps those inputs allow
+    before each report (:meth:`due`), so that a report depends on the vehicle's inputs alone, not
+    on the vehicles batched with it (``--jobs``). The statuses are the node's
+    (:func:`vehicle_status`, named ``<node>: <namespace>``), without what only DDS knows;
+    ``steps_per_s`` counts the steps per second of recording time since the last report. Also
+    keeps, per vehicle, the first input rejected for each reason (what was wrong, and the log
+    time of its message), which ``cloe infer`` prints as the node logs them."""
 
     def __init__(self, node: str, period_s: float, output_ns: str) -> None:
         self.node, self.output_ns = node, output_ns
         self.period_ns = max(1, round(period_s * NS))
         #: per vehicle and reason, the first description, the log time of its message (None
-        #: where the rejection came later than the message) and how many there were
+        #: where the rejection was decided by a later message) and how many there were
         self.first_rejected: dict[str, dict[str, tuple[str, int | None, int]]] = {}
         self._last_rejected: dict[str, str] = {}
         self._note: dict[str, str] = {}
         self._last: dict[str, Estimate] = {}
-        self._slot: dict[str, int] = {}
+        self._slot: dict[str, int] = {}  # the period of the vehicle's latest input
         self._steps: dict[str, int] = {}  # estimates so far
         self._since: dict[str, tuple[int, int, float]] = {}  # stamp, steps and rate of the last
 
     def rejected(self, vehicle: str, descriptions: list[str], log_ns: int | None = None) -> None:
         """Inputs of ``vehicle`` rejected (or, 'world frame learnt again', accepted in a new
         frame), as :meth:`~cloe_ros.core.validation.Rejection.describe` gives them; ``log_ns``
-        the log time of the message just fed, if they are about it."""
+        the log time of their message, if known."""
         first = self.first_rejected.setdefault(vehicle, {})
         for text in descriptions:
             self._last_rejected[vehicle] = text
@@ -183,46 +187,38 @@ class OfflineReports:
             _, at, count = first.get(reason, (text, log_ns, 0))
             first[reason] = (first[reason][0] if count else text, at, count + 1)
 
-    def reports(
-        self, vehicle: str, namespace: str, engine: VehicleEngine, estimates: list[Estimate],
-        malformed: int,
-    ) -> list[tuple[str, int, bytes]]:  # fmt: skip
-        """After ``estimates`` of ``vehicle`` were emitted: the ``/diagnostics`` messages due,
-        as ``(topic, stamp, cdr)``."""
-        out = []
+    def estimates(self, vehicle: str, estimates: list[Estimate]) -> None:
+        """``estimates`` of ``vehicle`` were emitted (its last one, its prediction's note, its
+        steps are what the reports say)."""
         for est in estimates:
             if est.prediction_note:
                 self._note[vehicle] = est.prediction_note
-            self._last[vehicle] = est
-            self._steps[vehicle] = self._steps.get(vehicle, 0) + 1
-            slot = est.stamp_ns // self.period_ns
-            if self._slot.get(vehicle) != slot:
-                self._slot[vehicle] = slot
-                out.append(self._report(vehicle, namespace, engine, est.stamp_ns, malformed))
-        return out
+        if estimates:
+            self._last[vehicle] = estimates[-1]
+            self._steps[vehicle] = self._steps.get(vehicle, 0) + len(estimates)
 
-    def final(
-        self, vehicle: str, namespace: str, engine: VehicleEngine, stamp_ns: int, malformed: int
-    ) -> tuple[str, int, bytes]:
-        """The vehicle's last report, when its input has ended: at its last estimate (at
-        ``stamp_ns``, its last input's time, if it gave none)."""
-        last = self._last.get(vehicle)
-        return self._report(vehicle, namespace, engine,
-                            stamp_ns if last is None else last.stamp_ns, malformed)  # fmt: skip
+    def due(self, vehicle: str, log_ns: int) -> bool:
+        """Whether an input of ``vehicle`` logged at ``log_ns`` enters a new period (not its
+        first input): then the caller runs the vehicle's steps, and :meth:`report`, before it
+        feeds that input."""
+        slot = log_ns // self.period_ns
+        previous = self._slot.get(vehicle)
+        self._slot[vehicle] = slot
+        return previous is not None and slot != previous
 
-    def _report(
-        self, vehicle: str, namespace: str, engine: VehicleEngine, stamp_ns: int, malformed: int
+    def report(
+        self, vehicle: str, namespace: str, engine: VehicleEngine, log_ns: int, malformed: int
     ) -> tuple[str, int, bytes]:
-        # (the estimates' own count: the engine's counters may be ahead, at the end of a batch)
+        """``(topic, stamp, cdr)`` of the status of ``vehicle`` at ``log_ns``."""
         steps = self._steps.get(vehicle, 0)
-        since_ns, since_steps, rate = self._since.get(vehicle, (stamp_ns, steps, 0.0))
-        if stamp_ns > since_ns:
-            rate = (steps - since_steps) / ((stamp_ns - since_ns) / NS)
-        self._since[vehicle] = (stamp_ns, steps, rate)
+        since_ns, since_steps, rate = self._since.get(vehicle, (log_ns, steps, 0.0))
+        if log_ns > since_ns:
+            rate = (steps - since_steps) / ((log_ns - since_ns) / NS)
+        self._since[vehicle] = (log_ns, steps, rate)
         status = vehicle_status(
             f'{self.node}: {namespace}', namespace, engine, self.output_ns,
             last=self._last.get(vehicle), prediction_note=self._note.get(vehicle, ''),
             malformed=malformed, last_rejected=self._last_rejected.get(vehicle, ''),
             steps_per_s=rate,
         )  # fmt: skip
-        return DIAGNOSTICS_TOPIC, stamp_ns, encode_diagnostics(stamp_ns, [status])
+        return DIAGNOSTICS_TOPIC, log_ns, encode_diagnostics(log_ns, [status])

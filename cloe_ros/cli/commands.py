@@ -165,7 +165,7 @@ def add_infer(sub: argparse._SubParsersAction) -> None:
             '<ns>/<output_ns>/ (default output_ns: cloe), state, parameters, parameters_named, '
             'parameter_labels and, with predictions on, prediction, prediction_radius and '
             'prediction_markers into the bag OUTPUT, and /diagnostics (each vehicle\'s status as '
-            'the node reports it, every diagnostics_period of recording time), with copies of the '
+            'the node reports it, every diagnostics_period of message time), with copies of the '
             'inputs (and of <ns>/ground_truth and <ns>/true_parameters, when present) so the '
             'output bag is self-contained. The first input rejected for each reason is a '
             'warning.'

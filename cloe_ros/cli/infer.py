@@ -331,14 +331,9 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
             for topic, stamp, data in enc.encode(est, engine.world_frame or '',
                                                  engine.child_frame):  # fmt: skip
                 write(topic, stamp, data)
-        reports.estimates(vehicle, estimates)
-
-    def report(vehicle, log_ns):
-        """The vehicle's status at ``log_ns``, after the steps its inputs so far allow (as
-        many whichever vehicles share its batches)."""
-        emit_all(batches.fleet.advance([vehicle]))
-        write(*reports.report(vehicle, vehicle or '/', engines[vehicle], log_ns,
-                              malformed[vehicle]))  # fmt: skip
+        for report in reports.reports(vehicle, vehicle or '/', engine, estimates,
+                                      malformed[vehicle]):  # fmt: skip
+            write(*report)
 
     def emit_all(estimates):
         for v, of_vehicle in estimates.items():
@@ -354,8 +349,6 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
         received[topic] += 1
         vehicle, kind = target
         emit_all(batches.before(log_ns))
-        if reports.due(vehicle, log_ns):
-            report(vehicle, log_ns)
         last_input[vehicle] = log_ns
         try:
             _, own = feed(engines[vehicle], kind, raw)
@@ -365,7 +358,8 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
             continue
         for r in engines[vehicle].take_rejections():
             # (a held input found an outlier by this one: its own message's time is not known)
-            reports.rejected(vehicle, [r.describe()], log_ns if r is own else None)
+            later = r is not own and str(r).endswith('outlier')
+            reports.rejected(vehicle, [r.describe()], None if later else log_ns)
         batches.fed(vehicle, log_ns)
         count += 1
         if progress is not None and count % 500 == 0:
@@ -374,7 +368,7 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
     for v in found:
         emit(v, engines[v].finish())
         reports.rejected(v, [r.describe() for r in engines[v].take_rejections()])
-        report(v, last_input[v])  # (the last: after its last input)
+        write(*reports.final(v, v or '/', engines[v], last_input[v], malformed[v]))
     unusable = {v: _unusable(bag, v, engines[v], malformed[v], received)
                 for v in found if engines[v].stats.steps == 0}  # fmt: skip
     return {

@@ -4,9 +4,8 @@ jumps, restarts), its identifier's status, its reference's and its predictions',
 node only, what DDS says of its inputs (:class:`Link`).
 
 The node reports every ``diagnostics_period`` of its clock (all its vehicles in one
-``DiagnosticArray``); ``cloe infer`` every ``diagnostics_period`` of recording time, one array
-per vehicle, so that its outputs do not depend on how ``--jobs`` groups the vehicles
-(:class:`OfflineReports`).
+``DiagnosticArray``); ``cloe infer`` every ``diagnostics_period`` of message time, one array per
+vehicle (:class:`OfflineReports`).
 """
 
 from __future__ import annotations
@@ -152,16 +151,20 @@ def vehicle_status(
 
 
 class OfflineReports:
-    """``/diagnostics`` of ``cloe infer``: per vehicle, its status when one of its inputs enters
-    a new ``period_s`` of recording time (log time), as the inputs before it left it, and a last
-    one after its last input, each a ``DiagnosticArray`` of that vehicle alone, stamped (and
-    logged) with that input's log time. The caller runs the vehicle's steps those inputs allow
-    before each report (:meth:`due`), so that a report depends on the vehicle's inputs alone, not
-    on the vehicles batched with it (``--jobs``). The statuses are the node's
-    (:func:`vehicle_status`, named ``<node>: <namespace>``), without what only DDS knows;
-    ``steps_per_s`` counts the steps per second of recording time since the last report. Also
-    keeps, per vehicle, the first input rejected for each reason (what was wrong, and the log
-    time of its message), which ``cloe infer`` prints as the node logs them."""
+    """``/diagnostics`` of ``cloe infer``: per vehicle, its status after the batch of its steps
+    in which an estimate enters a new ``period_s`` of message time, and once more after its last
+    input, each a ``DiagnosticArray`` of that vehicle alone, stamped (and logged) with the
+    batch's last estimate: the statuses are the node's (:func:`vehicle_status`, named ``<node>:
+    <namespace>``), without what only DDS knows, with the engine's counters as they are then
+    (its inputs fed so far; its steps to that estimate), and ``steps_per_s`` the steps per second
+    of message time since its first estimate or its last report. Also keeps, per vehicle, the
+    first input rejected for each reason (what was wrong, and the log time of its message),
+    which ``cloe infer`` prints as the node logs them.
+
+    The caller steps a vehicle when the recording's time has passed a grid step
+    (:class:`~cloe_ros.core.fleet.RecordingBatches`), whose start the first input of any vehicle
+    of the process sets: with ``--jobs``, or beside other vehicles, a report can count the
+    inputs of a grid step more or fewer than alone."""
 
     def __init__(self, node: str, period_s: float, output_ns: str) -> None:
         self.node, self.output_ns = node, output_ns
@@ -172,7 +175,7 @@ class OfflineReports:
         self._last_rejected: dict[str, str] = {}
         self._note: dict[str, str] = {}
         self._last: dict[str, Estimate] = {}
-        self._slot: dict[str, int] = {}  # the period of the vehicle's latest input
+        self._slot: dict[str, int] = {}  # the period of the last report
         self._steps: dict[str, int] = {}  # estimates so far
         self._since: dict[str, tuple[int, int, float]] = {}  # stamp, steps and rate of the last
 
@@ -187,38 +190,49 @@ class OfflineReports:
             _, at, count = first.get(reason, (text, log_ns, 0))
             first[reason] = (first[reason][0] if count else text, at, count + 1)
 
-    def estimates(self, vehicle: str, estimates: list[Estimate]) -> None:
-        """``estimates`` of ``vehicle`` were emitted (its last one, its prediction's note, its
-        steps are what the reports say)."""
+    def reports(
+        self, vehicle: str, namespace: str, engine: VehicleEngine, estimates: list[Estimate],
+        malformed: int,
+    ) -> list[tuple[str, int, bytes]]:  # fmt: skip
+        """After a batch of ``estimates`` of ``vehicle`` was emitted: its report if one of
+        them entered a new period, as ``[(topic, stamp, cdr)]`` (or none)."""
+        if not estimates:
+            return []
+        if vehicle not in self._since:  # (the rate counts from the first estimate)
+            self._since[vehicle] = (estimates[0].stamp_ns, 1, 0.0)
         for est in estimates:
             if est.prediction_note:
                 self._note[vehicle] = est.prediction_note
-        if estimates:
-            self._last[vehicle] = estimates[-1]
-            self._steps[vehicle] = self._steps.get(vehicle, 0) + len(estimates)
+        self._steps[vehicle] = self._steps.get(vehicle, 0) + len(estimates)
+        last = self._last[vehicle] = estimates[-1]
+        slots = {est.stamp_ns // self.period_ns for est in estimates}
+        if slots == {self._slot.get(vehicle)}:
+            return []
+        self._slot[vehicle] = last.stamp_ns // self.period_ns
+        return [self._report(vehicle, namespace, engine, last.stamp_ns, malformed)]
 
-    def due(self, vehicle: str, log_ns: int) -> bool:
-        """Whether an input of ``vehicle`` logged at ``log_ns`` enters a new period (not its
-        first input): then the caller runs the vehicle's steps, and :meth:`report`, before it
-        feeds that input."""
-        slot = log_ns // self.period_ns
-        previous = self._slot.get(vehicle)
-        self._slot[vehicle] = slot
-        return previous is not None and slot != previous
+    def final(
+        self, vehicle: str, namespace: str, engine: VehicleEngine, last_input_ns: int,
+        malformed: int,
+    ) -> tuple[str, int, bytes]:  # fmt: skip
+        """The vehicle's last report, after its last input: at its last estimate (at its last
+        input's log time ``last_input_ns`` if it gave none)."""
+        last = self._last.get(vehicle)
+        stamp = last_input_ns if last is None else last.stamp_ns
+        return self._report(vehicle, namespace, engine, stamp, malformed)
 
-    def report(
-        self, vehicle: str, namespace: str, engine: VehicleEngine, log_ns: int, malformed: int
+    def _report(
+        self, vehicle: str, namespace: str, engine: VehicleEngine, stamp_ns: int, malformed: int
     ) -> tuple[str, int, bytes]:
-        """``(topic, stamp, cdr)`` of the status of ``vehicle`` at ``log_ns``."""
         steps = self._steps.get(vehicle, 0)
-        since_ns, since_steps, rate = self._since.get(vehicle, (log_ns, steps, 0.0))
-        if log_ns > since_ns:
-            rate = (steps - since_steps) / ((log_ns - since_ns) / NS)
-        self._since[vehicle] = (log_ns, steps, rate)
+        since_ns, since_steps, rate = self._since.get(vehicle, (stamp_ns, steps, 0.0))
+        if stamp_ns > since_ns:
+            rate = (steps - since_steps) / ((stamp_ns - since_ns) / NS)
+        self._since[vehicle] = (stamp_ns, steps, rate)
         status = vehicle_status(
             f'{self.node}: {namespace}', namespace, engine, self.output_ns,
             last=self._last.get(vehicle), prediction_note=self._note.get(vehicle, ''),
             malformed=malformed, last_rejected=self._last_rejected.get(vehicle, ''),
             steps_per_s=rate,
         )  # fmt: skip
-        return DIAGNOSTICS_TOPIC, log_ns, encode_diagnostics(log_ns, [status])
+        return DIAGNOSTICS_TOPIC, stamp_ns, encode_diagnostics(stamp_ns, [status])

@@ -351,15 +351,14 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
         emit_all(batches.before(log_ns))
         last_input[vehicle] = log_ns
         try:
-            _, own = feed(engines[vehicle], kind, raw)
+            feed(engines[vehicle], kind, raw)
         except messages.MessageError as err:
             malformed[vehicle] += 1
-            reports.rejected(vehicle, [f'malformed {kind}: {err}'], log_ns)
+            reports.rejected(vehicle, f'malformed {kind}: {err}', log_ns)
             continue
         for r in engines[vehicle].take_rejections():
             # (a held input found an outlier by this one: its own message's time is not known)
-            later = r is not own and str(r).endswith('outlier')
-            reports.rejected(vehicle, [r.describe()], None if later else log_ns)
+            reports.rejected(vehicle, r.describe(), None if r.later else log_ns)
         batches.fed(vehicle, log_ns)
         count += 1
         if progress is not None and count % 500 == 0:
@@ -367,7 +366,8 @@ def _run(reader, bag, engines, encoders, engine_config, write, copies, progress,
     emit_all(batches.flush())
     for v in found:
         emit(v, engines[v].finish())
-        reports.rejected(v, [r.describe() for r in engines[v].take_rejections()])
+        for r in engines[v].take_rejections():
+            reports.rejected(v, r.describe())
         write(*reports.final(v, v or '/', engines[v], last_input[v], malformed[v]))
     unusable = {v: _unusable(bag, v, engines[v], malformed[v], received)
                 for v in found if engines[v].stats.steps == 0}  # fmt: skip

@@ -327,7 +327,7 @@ class Timeline:
     def _reject_outlier(self, stamp_ns: int, reason: str, why: str) -> None:
         latest = self.latest_ns()
         where = '' if latest is None else f', {(stamp_ns - latest) / NS:+.6g} s from the timeline'
-        self._reject(Rejection(reason, f'{seconds(stamp_ns)}{where}; {why}'))
+        self._reject(Rejection(reason, f'{seconds(stamp_ns)}{where}; {why}', later=True))
 
     def _accept(self, sample: OdometrySample, zeta: np.ndarray) -> None:
         if self._yaw is not None:

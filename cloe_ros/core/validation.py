@@ -42,14 +42,16 @@ ROUNDOFF = 1e-12
 
 
 class Rejection(str):
-    """Why an input was rejected: the reason (the counter's key, categorical) as the string, and
-    ``detail``, the offending value, for the logs."""
+    """Why an input was rejected: the reason (the counter's key, categorical) as the string,
+    ``detail``, the offending value, for the logs, and ``later``: decided after its input
+    arrived, by a later one (a held input found an outlier), not on the input's arrival."""
 
     detail: str
+    later: bool
 
-    def __new__(cls, reason: str, detail: str = '') -> Rejection:
+    def __new__(cls, reason: str, detail: str = '', later: bool = False) -> Rejection:
         obj = super().__new__(cls, reason)
-        obj.detail = detail
+        obj.detail, obj.later = detail, later
         return obj
 
     def describe(self) -> str:

@@ -20,6 +20,8 @@ from cloe_ros.io.messages import OK, WARN, Status, encode_diagnostics
 
 #: The topic of the diagnostics, global as in ROS (``/diagnostics``).
 DIAGNOSTICS_TOPIC = '/diagnostics'
+#: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
+STALE_AFTER = 2.0
 
 
 @dataclass
@@ -38,7 +40,7 @@ class Link:
     missing: list[str] = field(default_factory=list)
     missing_words: str = ''
     silent_s: float | None = None
-    stale_after: float = 2.0
+    stale_after: float = STALE_AFTER
 
 
 def identification_values(
@@ -88,8 +90,13 @@ def vehicle_status(
         message = f'running; {rejected} input(s) rejected, the last: {last_rejected}'
     else:
         level, message = OK, 'running'
-    link_values: list[tuple[str, str]] = []
+    silent_values: list[tuple[str, str]] = []  # (what only DDS knows: the node's alone)
+    dds_values: list[tuple[str, str]] = []
     if link is not None:
+        silent_values = [
+            ('odom_silent_s', '' if link.silent_s is None else f'{link.silent_s:.1f}')]
+        dds_values = [*[(f'{k}_lost', str(n)) for k, n in link.lost.items()],
+                      ('publishers_missing', ', '.join(link.missing))]  # fmt: skip
         if any(link.lost.values()):
             level = max(level, WARN)
             message += '; lost in DDS: ' + ', '.join(
@@ -108,10 +115,6 @@ def vehicle_status(
     if engine.started and untracked:
         level = max(level, WARN)
         message += '; reference not tracked: ' + ', '.join(c for c, _ in untracked)
-    if link is not None:
-        link_values = [
-            ('odom_silent_s', '' if link.silent_s is None else f'{link.silent_s:.1f}'),
-        ]
     values = [
         ('algorithm', engine.config.estimator.algorithm),
         ('output_ns', output_ns),
@@ -122,7 +125,7 @@ def vehicle_status(
         ('untracked_steps', str(s.untracked_steps)),
         ('rate_hz', f'{engine.config.rate:g}'),
         ('prediction_phase', engine.config.prediction.phase),
-        *link_values,
+        *silent_values,
         ('steps_per_s', f'{steps_per_s:.1f}'),
         ('steps', str(s.steps)),
         ('odom_received', str(s.odom_received)),
@@ -131,8 +134,7 @@ def vehicle_status(
         ('reference_accepted', str(s.reference_accepted)),
         ('rejected', str(rejected)),
         ('malformed', str(malformed)),
-        *([] if link is None else [(f'{k}_lost', str(n)) for k, n in link.lost.items()]),
-        *([] if link is None else [('publishers_missing', ', '.join(link.missing))]),
+        *dds_values,
         *[(f'rejected: {k}', str(n)) for k, n in sorted(s.rejected.items())],
         ('time_jumps', str(s.time_jumps)),
         ('odom_missing', str(s.odom_missing)),
@@ -179,16 +181,15 @@ class OfflineReports:
         self._steps: dict[str, int] = {}  # estimates so far
         self._since: dict[str, tuple[int, int, float]] = {}  # stamp, steps and rate of the last
 
-    def rejected(self, vehicle: str, descriptions: list[str], log_ns: int | None = None) -> None:
-        """Inputs of ``vehicle`` rejected (or, 'world frame learnt again', accepted in a new
-        frame), as :meth:`~cloe_ros.core.validation.Rejection.describe` gives them; ``log_ns``
-        the log time of their message, if known."""
+    def rejected(self, vehicle: str, text: str, log_ns: int | None = None) -> None:
+        """An input of ``vehicle`` rejected (or, 'world frame learnt again', accepted in a new
+        frame), as :meth:`~cloe_ros.core.validation.Rejection.describe` gives it; ``log_ns`` the
+        log time of its message, if known."""
+        self._last_rejected[vehicle] = text
         first = self.first_rejected.setdefault(vehicle, {})
-        for text in descriptions:
-            self._last_rejected[vehicle] = text
-            reason = text.split(':')[0]
-            _, at, count = first.get(reason, (text, log_ns, 0))
-            first[reason] = (first[reason][0] if count else text, at, count + 1)
+        reason = text.split(':')[0]
+        text, at, count = first.get(reason, (text, log_ns, 0))
+        first[reason] = (text, at, count + 1)
 
     def reports(
         self, vehicle: str, namespace: str, engine: VehicleEngine, estimates: list[Estimate],

@@ -45,7 +45,7 @@ from cloe_ros.core.engine import NS, EngineConfig, VehicleEngine
 from cloe_ros.core.fleet import Fleet
 from cloe_ros.io import messages
 from cloe_ros.io.config import DEFAULTS, SettingsError, build_configs, node_values
-from cloe_ros.io.diagnostics import Link, vehicle_status
+from cloe_ros.io.diagnostics import DIAGNOSTICS_TOPIC, STALE_AFTER, Link, vehicle_status
 from cloe_ros.io.messages import MessageError, Status, encode_diagnostics
 from cloe_ros.io.outputs import OutputConfig, OutputEncoder
 from cloe_ros.ros.common import (
@@ -80,8 +80,6 @@ OUTPUT_TYPES = {
 INPUTS = ('odom', 'reference', 'reference_plan')
 #: The inputs a vehicle needs, and the type the node subscribes to each with.
 INPUT_TYPES = {'odom': messages.ODOMETRY, 'reference': messages.POSE_STAMPED}
-#: Wall-clock seconds without odometry after which a started vehicle's status turns WARN.
-STALE_AFTER = 2.0
 #: The node's status turns WARN when, over a diagnostics period, its callbacks took this share
 #: of the wall time (at its limit), or its steady timer ran this late, s (behind its inputs); see
 #: :class:`Load`.
@@ -242,7 +240,7 @@ class InferenceNode(Node):
             declared['discovery_period'], self.load.timed(self._poll_graph), clock=steady
         )
         self.diagnostics_pub = self.create_publisher(
-            DiagnosticArray, '/diagnostics', qos(depth=10)
+            DiagnosticArray, DIAGNOSTICS_TOPIC, qos(depth=10)
         )
         self._diag_period_ns = round(declared['diagnostics_period'] * NS)
         self._diag_timer = self.create_timer(
